@@ -1,0 +1,5 @@
+"""Datasets as numpy arrays: the release's JSON files and built-in generated data."""
+
+from c3dpo_jax.data.dataset import KeypointData, load_splits
+
+__all__ = ["KeypointData", "load_splits"]

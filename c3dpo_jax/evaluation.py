@@ -1,0 +1,101 @@
+"""Evaluation protocol of the release: MPJPE (orig / depth-flipped / best) and stress.
+
+Glossary: M samples, N keypoints; ``pred`` and ``gt`` are ``(M, N, 3)`` in the
+camera frame; ``mask (M, N)`` selects the points that count. numpy only.
+
+Protocols (``protocol`` argument):
+- ``"default"`` / ``"up3d"``: mean depth of pred and gt set to 0, plain averages.
+- ``"h36m"``: pred and gt made relative to joint 0, errors times ``scale``, averaged
+  per action (``group``) first, then over actions.
+- ``"pascal3d"``: mask = class_mask * kp_defined, masked mean depth set to 0,
+  averaged per class (``group``) first, then over classes.
+Paper Sec. 4.2: MPJPE is evaluated for the prediction and its depth-flipped copy and
+the better of the two is kept (per sample); stress is invariant to the flip.
+"""
+
+import numpy as np
+
+from c3dpo_jax.data.dataset import KeypointData
+
+
+def _masked_mean(x: np.ndarray, mask: np.ndarray, axis: int) -> np.ndarray:
+    return (x * mask).sum(axis) / np.maximum(mask.sum(axis), 1e-9)
+
+
+def center_depth(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Subtracts the (masked) mean depth of each sample."""
+    depth = _masked_mean(x[..., 2], mask, axis=1)
+    return x - np.stack([np.zeros_like(depth), np.zeros_like(depth), depth], -1)[:, None, :]
+
+
+def mpjpe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-sample MPJPE of ``pred``, of ``pred`` with depth negated, and their min."""
+    flipped = pred * np.array([1.0, 1.0, -1.0])
+    orig = _masked_mean(np.linalg.norm(pred - gt, axis=-1), mask, axis=1)
+    flip = _masked_mean(np.linalg.norm(flipped - gt, axis=-1), mask, axis=1)
+    return {"mpjpe_orig": orig, "mpjpe_flip": flip, "mpjpe": np.minimum(orig, flip)}
+
+
+def stress(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-sample mean over pairs i < j of | ||X_i - X_j|| - ||X*_i - X*_j|| |."""
+    n = pred.shape[1]
+    i, j = np.triu_indices(n, k=1)
+    d_pred = np.linalg.norm(pred[:, i] - pred[:, j], axis=-1)
+    d_gt = np.linalg.norm(gt[:, i] - gt[:, j], axis=-1)
+    pair_mask = mask[:, i] * mask[:, j]
+    return _masked_mean(np.abs(d_pred - d_gt), pair_mask, axis=1)
+
+
+def _aggregate(per_sample: np.ndarray, data: KeypointData) -> tuple[float, dict]:
+    """Mean over groups of per-group means (plain mean when there are no groups)."""
+    if data.group is None or not data.group_names:
+        return float(per_sample.mean()), {}
+    per_group = {
+        name: float(per_sample[data.group == g].mean())
+        for g, name in enumerate(data.group_names)
+        if np.any(data.group == g)
+    }
+    return float(np.mean(list(per_group.values()))), per_group
+
+
+def evaluate(pred: np.ndarray, data: KeypointData, protocol: str = "default") -> dict:
+    """Scores predictions ``pred (M, N, 3)`` against ``data.kp3d`` under ``protocol``.
+
+    Returns:
+      ``{"mpjpe", "mpjpe_orig", "mpjpe_flip", "stress", "n_samples", "per_group"}``
+      where ``mpjpe`` is the flip-resolved MPJPE (the number papers report).
+    """
+    if data.kp3d is None:
+        raise ValueError("this split has no 3D ground truth (kp_loc_3d); cannot compute MPJPE")
+    pred = np.asarray(pred, np.float64)
+    gt = data.kp3d.astype(np.float64)
+    mask = np.ones(gt.shape[:2])
+    if protocol == "h36m":
+        pred, gt = pred - pred[:, :1], gt - gt[:, :1]
+        scale = data.scale if data.scale is not None else np.ones(len(data))
+    elif protocol in ("default", "up3d", "pascal3d"):
+        if protocol == "pascal3d":
+            for extra in (data.class_mask, data.kp_defined):
+                if extra is not None:
+                    mask = mask * extra
+        pred, gt = center_depth(pred, mask), center_depth(gt, mask)
+        scale = np.ones(len(data))
+    else:
+        raise ValueError(f"unknown evaluation protocol {protocol!r}")
+    errors = {k: v * scale for k, v in mpjpe(pred, gt, mask).items()}
+    errors["stress"] = stress(pred, gt, mask) * scale
+    out = {"n_samples": len(data)}
+    for key, values in errors.items():
+        out[key], per_group = _aggregate(values, data)
+        if key == "mpjpe" and per_group:
+            out["per_group"] = per_group
+    return out
+
+
+def format_table(rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress")) -> str:
+    """Plain-text table: one row per method, one column per metric."""
+    width = max(len(name) for name in rows) + 2
+    lines = ["method".ljust(width) + "".join(k.rjust(13) for k in keys)]
+    for name, res in rows.items():
+        lines.append(name.ljust(width) + "".join(f"{res[k]:13.4f}" for k in keys))
+    return "\n".join(lines)

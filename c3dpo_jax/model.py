@@ -1,0 +1,264 @@
+"""C3DPO's pure forward passes, for ONE example, plus the model's static settings.
+
+Glossary: N keypoints, D shape-basis size, S canonicalisation samples. Points are
+rows: ``kp (N, 2)``, ``X (N, 3)``; rotations act as ``X @ R.T`` (see ``so3``).
+
+``forward_train`` must run under ``jax.vmap(..., axis_name="batch")`` (BatchNorm
+takes its statistics over that axis); ``forward_eval`` uses running statistics and
+runs anywhere. Paper equations: reprojection (eq. 4, l1), canonicalisation (eq. 5,
+l2), in-plane equivariance (eq. 6, l3).
+"""
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from c3dpo_jax import geometry, so3
+from c3dpo_jax.losses import huber
+from c3dpo_jax.networks import C3DPONet
+from c3dpo_jax.types import Kp2, Vis
+
+Variables = dict[str, Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Every option of the release's ``C3DPO`` model (names as in the release)."""
+
+    n_keypoints: int = 17
+    shape_basis_size: int = 10
+    n_fully_connected: int = 1024
+    n_layers: int = 6
+    keypoint_norm_type: str = "to_mean"  # "to_mean" | "to_root"
+    root_joint: int = 0
+    keypoint_rescale: float = 1.0
+    projection_type: str = "orthographic"  # "orthographic" | "perspective"
+    perspective_depth_threshold: float = 0.1
+    argmin_translation: bool = False
+    camera_translation: bool = False
+    camera_xy_translation: bool = False
+    depth_offset: float = 0.0
+    camera_scale: bool = False
+    z_augment: bool = False
+    z_augment_rot_angle: float = 0.3925
+    z_equivariance: bool = True
+    z_equivariance_rot_angle: float = 0.3925
+    independent_phi_for_aug: bool = True
+    canonicalization: bool = True
+    canonicalization_n_layers: int = 6
+    canonicalization_n_fully_connected: int = 1024
+    n_rand_samples: int = 4
+    canonicalization_rot_angle: float = 3.141592653589793
+    huber_scaling: float = 0.01
+    reprojection_normalization: str = "kp_total_count"  # | "kp_count_per_image"
+    squared_reprojection_loss: bool = False
+    replace_keypoints_with_input: bool = True
+    weight_init_std: float = 0.01
+
+    @classmethod
+    def from_dict(cls, d) -> "ModelConfig":
+        """From a dict or ConfigDict; unknown keys are an error, not silently dropped."""
+        d = dict(d)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown model option(s) {unknown}; known: {sorted(names)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_network(cfg: ModelConfig) -> C3DPONet:
+    # Without independent_phi_for_aug both in-plane copies share BatchNorm statistics.
+    phi_axes = "batch" if cfg.independent_phi_for_aug else ("batch", "copy")
+    return C3DPONet(
+        n_keypoints=cfg.n_keypoints,
+        shape_basis_size=cfg.shape_basis_size,
+        n_fully_connected=cfg.n_fully_connected,
+        n_layers=cfg.n_layers,
+        psi_n_fully_connected=cfg.canonicalization_n_fully_connected,
+        psi_n_layers=cfg.canonicalization_n_layers,
+        camera_translation=cfg.camera_translation,
+        camera_scale=cfg.camera_scale,
+        weight_init_std=cfg.weight_init_std,
+        phi_axis_name=phi_axes,
+    )
+
+
+def init_variables(key: jax.Array, cfg: ModelConfig) -> Variables:
+    """Random parameters and BatchNorm statistics (eval-mode init, no batch needed)."""
+    net = make_network(cfg)
+    n = cfg.n_keypoints
+    return dict(net.init(key, jnp.zeros((n, 2)), jnp.ones((n,)), False))
+
+
+def _camera(cfg: ModelConfig, phi_out, x_canon):
+    """Camera-frame shape ``s R X + T`` and the rotation."""
+    rot = so3.exp_map(phi_out["theta"])
+    t = phi_out["translation"]
+    if cfg.camera_xy_translation:
+        t = t * jnp.array([1.0, 1.0, 0.0])
+    t = t + jnp.array([0.0, 0.0, cfg.depth_offset])
+    return phi_out["scale"] * x_canon @ rot.T, t, rot
+
+
+def _prepare(cfg: ModelConfig, kp, intrinsics):
+    if cfg.projection_type == "perspective":
+        if intrinsics is None:
+            raise ValueError("a perspective model needs per-sample intrinsics K")
+        return geometry.calibrate(kp, intrinsics)
+    return kp
+
+
+def _project(cfg: ModelConfig, x_cam, kp_norm, vis):
+    proj, depth = geometry.project(
+        x_cam,
+        projection_type=cfg.projection_type,
+        depth_threshold=cfg.perspective_depth_threshold,
+    )
+    if cfg.argmin_translation:
+        proj = geometry.argmin_translation(proj, kp_norm, vis)
+    return proj, depth
+
+
+def forward_train(
+    variables: Variables,
+    kp: Kp2,
+    vis: Vis,
+    class_mask: Float[Array, " N"],
+    intrinsics: Float[Array, "3 3"] | None,
+    key: jax.Array,
+    cfg: ModelConfig,
+) -> tuple[dict[str, Array], dict[str, Any]]:
+    """Training forward pass of one example, under ``vmap(axis_name="batch")``.
+
+    Returns:
+      ``(terms, batch_stats)``: per-point reprojection errors ``repro`` (N,) (pseudo-
+      Huber, unmasked), per-sample canonicalisation errors ``canon`` (S,) (masked
+      point means) and diagnostics; the updated BatchNorm statistics.
+    """
+    net = make_network(cfg)
+    params, stats = variables["params"], variables["batch_stats"]
+    k_aug, k_eq, k_canon = jax.random.split(key, 3)
+    kp_norm, _ = geometry.normalise_keypoints(
+        _prepare(cfg, kp, intrinsics), vis, norm_type=cfg.keypoint_norm_type,
+        rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
+    )
+
+    def phi(kp_in, stats):
+        out, upd = net.apply(
+            {"params": params, "batch_stats": stats}, kp_in, vis, True,
+            method="phi", mutable=["batch_stats"],
+        )
+        return out, upd["batch_stats"]
+
+    # z_augment: rotate the input in-plane; the rotation is undone on the 3D output.
+    r_aug = so3.in_plane_rotation(k_aug, cfg.z_augment_rot_angle) if cfg.z_augment else jnp.eye(2)
+    kp_in = kp_norm @ r_aug.T
+    if cfg.z_equivariance:
+        # Eq. 6: camera from the first copy, shape coefficients from a copy rotated again.
+        r_eq = so3.in_plane_rotation(k_eq, cfg.z_equivariance_rot_angle)
+        copies = jnp.stack([kp_in, kp_in @ r_eq.T])
+        if cfg.independent_phi_for_aug:
+            out1, stats = phi(copies[0], stats)
+            out2, stats = phi(copies[1], stats)
+        else:
+            outs, st = jax.vmap(phi, in_axes=(0, None), axis_name="copy")(copies, stats)
+            out1, out2 = (jax.tree.map(lambda a, i=i: a[i], outs) for i in range(2))
+            stats = jax.tree.map(lambda a: a[0], st)
+        phi_out = dict(out1, alpha=out2["alpha"])
+    else:
+        phi_out, stats = phi(kp_in, stats)
+
+    def shape(alpha):
+        return net.apply({"params": params}, alpha, method="shape") * class_mask[:, None]
+
+    x_canon = shape(phi_out["alpha"])
+    x_cam, t, _ = _camera(cfg, phi_out, x_canon)
+    r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
+    x_cam = (x_cam + t) @ r_aug3  # applies R_aug^T to column vectors
+    proj, _ = _project(cfg, x_cam, kp_norm, vis)
+    dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
+    repro = dist_sq if cfg.squared_reprojection_loss else huber(dist_sq, cfg.huber_scaling)
+    terms = {"repro": repro, "canon": jnp.zeros((0,))}
+    if cfg.canonicalization:
+        terms["canon"], stats = _canonicalisation(net, params, stats, x_canon, class_mask, k_canon, cfg)
+    return terms, stats
+
+
+def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
+    """Eq. 5: Psi must undo S random rotations of the (not detached) canonical shape."""
+    keys = jax.random.split(key, cfg.n_rand_samples)
+    # rot_angle = pi means "any rotation": use the Haar measure (the release's
+    # axis-angle draw with a uniform angle is not uniform on SO(3)).
+    max_angle = None if cfg.canonicalization_rot_angle >= jnp.pi else cfg.canonicalization_rot_angle
+    rots = jax.vmap(lambda k: so3.random_rotation(k, max_angle))(keys)
+
+    def one(rot):
+        alpha_psi, upd = net.apply(
+            {"params": params, "batch_stats": stats}, x_canon @ rot.T, True,
+            method="psi", mutable=["batch_stats"],
+        )
+        x_hat = net.apply({"params": params}, alpha_psi, method="shape") * class_mask[:, None]
+        err = huber(jnp.sum((x_hat - x_canon) ** 2, axis=-1), cfg.huber_scaling)
+        return geometry.masked_mean(err, class_mask), upd["batch_stats"]
+
+    canon, new_stats = jax.vmap(one, axis_name="sample")(rots)
+    return canon, jax.tree.map(lambda a: a[0], new_stats)
+
+
+def forward_eval(
+    variables: Variables,
+    kp: Kp2,
+    vis: Vis,
+    class_mask: Float[Array, " N"],
+    intrinsics: Float[Array, "3 3"] | None,
+    cfg: ModelConfig,
+) -> dict[str, Array]:
+    """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi).
+
+    Returns a dict with ``shape_image_coord`` (N, 3): the 3D output in the input's
+    coordinates (visible points replaced by the input when
+    ``replace_keypoints_with_input``, depth divided by ``keypoint_rescale``), and
+    ``shape_camera`` (N, 3), ``shape_canonical`` (N, 3), ``rotation`` (3, 3),
+    ``theta`` (3,), ``alpha`` (D,), ``kp_reprojected`` (N, 2) in input coordinates,
+    ``kp_norm`` (N, 2), ``kp_mean`` (2,), ``repro`` (N,) pseudo-Huber errors.
+    """
+    net = make_network(cfg)
+    kp_cal = _prepare(cfg, kp, intrinsics)
+    kp_norm, centre = geometry.normalise_keypoints(
+        kp_cal, vis, norm_type=cfg.keypoint_norm_type,
+        rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
+    )
+    phi_out = net.apply(variables, kp_norm, vis, False, method="phi")
+    x_canon = net.apply(variables, phi_out["alpha"], method="shape") * class_mask[:, None]
+    x_cam, t, rot = _camera(cfg, phi_out, x_canon)
+    x_cam = x_cam + t
+    proj, depth = _project(cfg, x_cam, kp_norm, vis)
+    dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
+    reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
+    image_xy = reproj_image
+    if cfg.replace_keypoints_with_input:
+        image_xy = jnp.where(vis[:, None] > 0, kp_cal, reproj_image)
+    shape_image = jnp.concatenate([image_xy, depth[:, None] / cfg.keypoint_rescale], axis=1)
+    if cfg.projection_type == "perspective":
+        # Reprojections back to pixels; shape_image_coord stays in calibrated units.
+        reproj_image = geometry.uncalibrate(reproj_image, intrinsics)
+    return {
+        "shape_image_coord": shape_image,
+        "shape_camera": x_cam,
+        "shape_canonical": x_canon,
+        "rotation": rot,
+        "theta": phi_out["theta"],
+        "alpha": phi_out["alpha"],
+        "translation": t,
+        "scale": phi_out["scale"],
+        "kp_reprojected": reproj_image,
+        "kp_norm": kp_norm,
+        "kp_mean": centre,
+        "repro": huber(dist_sq, cfg.huber_scaling),
+    }

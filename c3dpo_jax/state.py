@@ -1,0 +1,91 @@
+"""Arrays-only train state, the optimiser and the learning-rate schedule.
+
+``TrainState`` holds nothing but arrays (``step``, ``params``, ``batch_stats``,
+``opt_state``): it is saved by orbax as is, printed, donated to the compiled step, and
+is the same pytree in a notebook as in the training loop. The network and optimiser
+are closed over by the step factories in ``train``.
+"""
+
+import dataclasses
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from c3dpo_jax import model
+
+
+@flax.struct.dataclass
+class TrainState:
+    step: jax.Array
+    params: Any
+    batch_stats: Any
+    opt_state: Any
+
+    @property
+    def variables(self) -> dict[str, Any]:
+        return {"params": self.params, "batch_stats": self.batch_stats}
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """Optimiser settings; the defaults are the release's (SGD, lr 1e-3, x0.1 at milestones)."""
+
+    optimizer: str = "sgd"  # "sgd" | "adam"
+    lr: float = 1e-3
+    momentum: float = 0.9
+    weight_decay: float = 5e-4
+    lr_milestones: tuple[int, ...] = ()  # in epochs
+    gamma: float = 0.1
+    warmup_steps: int = 0
+
+    @classmethod
+    def from_dict(cls, d) -> "OptimConfig":
+        d = dict(d)
+        d["lr_milestones"] = tuple(int(m) for m in d.get("lr_milestones", ()))
+        return cls(**d)
+
+
+def make_schedule(cfg: OptimConfig, steps_per_epoch: int) -> optax.Schedule:
+    """Multistep decay with milestones given in epochs (converted to steps), optional warm-up."""
+    boundaries = {int(m) * steps_per_epoch: cfg.gamma for m in cfg.lr_milestones}
+    schedule = optax.piecewise_constant_schedule(cfg.lr, boundaries)
+    if cfg.warmup_steps > 0:
+        warmup = optax.linear_schedule(0.0, cfg.lr, cfg.warmup_steps)
+        schedule = optax.join_schedules([warmup, schedule], [cfg.warmup_steps])
+    return schedule
+
+
+def _sgd(cfg: OptimConfig, schedule: optax.Schedule) -> optax.GradientTransformation:
+    # PyTorch's SGD adds weight_decay * param to the gradient before momentum; so does this.
+    return optax.chain(
+        optax.add_decayed_weights(cfg.weight_decay),
+        optax.sgd(schedule, momentum=cfg.momentum or None),
+    )
+
+
+def _adam(cfg: OptimConfig, schedule: optax.Schedule) -> optax.GradientTransformation:
+    return optax.chain(optax.add_decayed_weights(cfg.weight_decay), optax.adam(schedule))
+
+
+_OPTIMIZERS = {"sgd": _sgd, "adam": _adam}
+
+
+def make_optimizer(cfg: OptimConfig, steps_per_epoch: int) -> optax.GradientTransformation:
+    if cfg.optimizer not in _OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {cfg.optimizer!r}; known: {sorted(_OPTIMIZERS)}")
+    return _OPTIMIZERS[cfg.optimizer](cfg, make_schedule(cfg, steps_per_epoch))
+
+
+def create_train_state(
+    key: jax.Array, model_cfg: model.ModelConfig, tx: optax.GradientTransformation
+) -> TrainState:
+    variables = model.init_variables(key, model_cfg)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=variables["params"],
+        batch_stats=variables["batch_stats"],
+        opt_state=tx.init(variables["params"]),
+    )

@@ -1,0 +1,83 @@
+"""Base config: the release's model and optimiser defaults; dataset configs override it.
+
+Run: ``python -m c3dpo_jax.main --config=configs/default.py --workdir=/tmp/c3dpo``.
+``--config=FILE:ARGS`` takes comma-separated variant words:
+  smoke  tiny networks (H=32, 2 layers), 20 steps: checks that everything runs;
+  base   C3DPO-base (reprojection loss only: no equivariance, no Psi);
+  equiv  C3DPO-equiv (+ in-plane equivariance, no Psi);
+  full   C3DPO (the default: + canonicalisation network Psi).
+"""
+
+import dataclasses
+
+import ml_collections
+
+from c3dpo_jax.model import ModelConfig
+
+VARIANTS = ("smoke", "base", "equiv", "full")
+
+
+def parse_args(arg: str | None) -> set[str]:
+    words = {w for w in (arg or "").split(",") if w}
+    unknown = words - set(VARIANTS)
+    if unknown:
+        raise ValueError(f"unknown config variant(s) {sorted(unknown)}; known: {VARIANTS}")
+    return words
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+    c = ml_collections.ConfigDict()
+    c.seed = 0
+    c.data = dict(
+        name="synthetic",
+        source="synthetic",  # used when train_path is empty
+        train_path="",
+        test_path="",
+        protocol="default",  # "default" | "up3d" | "h36m" | "pascal3d"
+        class_balanced=False,  # draw a class uniformly, then an image of it
+        synthetic=dict(
+            n_keypoints=20, n_modes=3, deformation=0.35, occlusion=0.1, noise=0.0,
+            perspective=False, n_train=5000, n_test=1000, seed=0,
+        ),
+    )
+    c.model = dataclasses.asdict(ModelConfig())
+    c.loss = dict(w_reprojection=1.0, w_canonicalization=1.0)
+    c.optim = dict(
+        optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,
+        lr_milestones=(), gamma=0.1, warmup_steps=0,
+    )
+    c.train = dict(
+        batch_size=256,
+        samples_per_epoch=256_000,
+        epochs=10,
+        num_steps=0,  # > 0 overrides epochs * samples_per_epoch // batch_size
+        log_every=50,
+        ckpt_every=1000,
+        eval_every_epochs=1,  # 0 disables evaluation at epoch ends
+        eval_batch_size=1024,
+        progress_bar=True,
+    )
+    return c
+
+
+def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collections.ConfigDict:
+    """Applies the ``:smoke``, ``:base``, ``:equiv`` words (see the module docstring)."""
+    words = parse_args(arg)
+    if "base" in words:
+        c.model.z_equivariance = False
+        c.model.canonicalization = False
+    if "equiv" in words:
+        c.model.z_equivariance = True
+        c.model.canonicalization = False
+    if "smoke" in words:
+        c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 32
+        c.model.n_layers = c.model.canonicalization_n_layers = 2
+        c.train.batch_size = 32
+        c.train.num_steps = 20
+        c.train.samples_per_epoch = 10 * 32
+        c.train.log_every = 5
+        c.train.ckpt_every = 10
+        c.train.eval_batch_size = 64
+        c.data.synthetic.n_train = 256
+        c.data.synthetic.n_test = 64
+    return c
