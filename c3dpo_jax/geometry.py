@@ -35,12 +35,12 @@ def normalise_keypoints(
         centre = kp[root_joint]
     else:
         raise ValueError(f"unknown keypoint_norm_type {norm_type!r}")
-    return (kp - centre) * rescale, centre
+    return (kp - centre[None]) * rescale, centre
 
 
 def unnormalise_keypoints(kp_norm: Kp2, centre: Float[Array, "2"], rescale: float) -> Kp2:
     """Inverse of ``normalise_keypoints`` (for every point, visible or not)."""
-    return kp_norm / rescale + centre
+    return kp_norm / rescale + centre[None]
 
 
 def project(
@@ -67,7 +67,7 @@ def argmin_translation(proj: Kp2, target: Kp2, vis: Vis) -> Kp2:
     translation as the difference vector between the mean of the input visible
     points and the re-projected visible 3D shape keypoints").
     """
-    return proj + masked_mean(target - proj, vis)
+    return proj + masked_mean(target - proj, vis)[None]
 
 
 def calibrate(kp: Kp2, intrinsics: Float[Array, "3 3"]) -> Kp2:

@@ -5,6 +5,7 @@ Trains (resuming from DIR when it holds checkpoints) and evaluates, or with
 ``--config.section.field=value``.
 """
 
+import logging as py_logging
 import sys
 
 from absl import app, flags, logging
@@ -18,8 +19,16 @@ _MODE = flags.DEFINE_enum("mode", "train", ["train", "eval"], "Train then evalua
 flags.mark_flags_as_required(["config", "workdir"])
 
 
+class _QuietLibraries(py_logging.Filter):
+    """Drops the INFO chatter of orbax (dozens of lines per checkpoint)."""
+
+    def filter(self, record):
+        return record.levelno >= py_logging.WARNING or "/orbax/" not in record.pathname
+
+
 def main(argv):
     del argv
+    logging.get_absl_handler().addFilter(_QuietLibraries())
     config = _CONFIG.value
     logging.info("config:\n%s", config)
     if _MODE.value == "train":

@@ -180,7 +180,7 @@ def forward_train(
     x_canon = shape(phi_out["alpha"])
     x_cam, t, _ = _camera(cfg, phi_out, x_canon)
     r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
-    x_cam = (x_cam + t) @ r_aug3  # applies R_aug^T to column vectors
+    x_cam = (x_cam + t[None]) @ r_aug3  # applies R_aug^T to column vectors
     proj, _ = _project(cfg, x_cam, kp_norm, vis)
     dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
     repro = dist_sq if cfg.squared_reprojection_loss else huber(dist_sq, cfg.huber_scaling)
@@ -237,7 +237,7 @@ def forward_eval(
     phi_out = net.apply(variables, kp_norm, vis, False, method="phi")
     x_canon = net.apply(variables, phi_out["alpha"], method="shape") * class_mask[:, None]
     x_cam, t, rot = _camera(cfg, phi_out, x_canon)
-    x_cam = x_cam + t
+    x_cam = x_cam + t[None]
     proj, depth = _project(cfg, x_cam, kp_norm, vis)
     dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)

@@ -62,7 +62,7 @@ class ResBlock(nn.Module):
     axis_name: AxisName = "batch"
 
     @nn.compact
-    def __call__(self, x: Float[Array, " H"], train: bool) -> Float[Array, " H"]:
+    def __call__(self, x: Float[Array, "*B H"], train: bool) -> Float[Array, "*B H"]:
         inner = self.features // 4
         y = _dense(inner, x.shape[-1], "conv1")(x)
         y = nn.relu(_batch_norm(train, self.axis_name, "bn1")(y))
@@ -83,7 +83,7 @@ class Trunk(nn.Module):
     axis_name: AxisName = "batch"
 
     @nn.compact
-    def __call__(self, x: Float[Array, " F"], train: bool) -> Float[Array, " H"]:
+    def __call__(self, x: Float[Array, "*B F"], train: bool) -> Float[Array, "*B H"]:
         y = _dense(self.features, x.shape[-1], "conv1")(x)
         y = nn.relu(_batch_norm(train, self.axis_name, "bn1")(y))
         for i in range(self.n_layers):

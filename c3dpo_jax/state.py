@@ -19,7 +19,7 @@ from c3dpo_jax import model
 
 @flax.struct.dataclass
 class TrainState:
-    step: jax.Array
+    step: Any  # int32 scalar array (Any: orbax and tree_map rebuild it with other leaves)
     params: Any
     batch_stats: Any
     opt_state: Any

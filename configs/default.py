@@ -37,7 +37,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         class_balanced=False,  # draw a class uniformly, then an image of it
         synthetic=dict(
             n_keypoints=20, n_modes=3, deformation=0.35, occlusion=0.1, noise=0.0,
-            perspective=False, n_train=5000, n_test=1000, seed=0,
+            perspective=False, n_train=5000, n_test=1000, cameras="uniform",
+            max_elevation=0.5, seed=0,
         ),
     )
     c.model = dataclasses.asdict(ModelConfig())

@@ -2,11 +2,13 @@
 
   python -m c3dpo_jax.main --config=configs/synthetic.py --workdir=runs/synthetic
 
-Low-rank non-rigid shapes (20 points, 3 deformation modes), Haar-random cameras,
-orthographic views, 10% of points hidden at random; 5000 train / 1000 test views.
-Networks are narrower than the release's (256 wide, 3 blocks) and Adam replaces SGD
-so that the run takes a few minutes on 2 CPU cores; the method (losses, Phi, Psi)
-is the paper's. Expected final test MPJPE: see README "Results".
+Low-rank non-rigid shapes (20 points, 3 deformation modes), cameras at any azimuth
+with elevation and roll within +-0.5 rad ("upright", like cameras around a standing
+person), orthographic views, 10% of points hidden at random; 5000 train / 1000 test
+views. Networks are narrower than the release's (256 wide, 3 residual blocks) and
+Adam (lr 3e-3, x0.1 after epoch 8) replaces SGD so that the run takes about two
+minutes on 2 CPU cores; the method (the three losses, Phi and Psi) is the paper's.
+Expected: test MPJPE about 0.08 against 0.26 for the fitted mean shape (README).
 """
 
 from configs import default
@@ -14,17 +16,19 @@ from configs import default
 
 def get_config(arg=None):
     c = default.get_config()
+    c.data.synthetic.cameras = "upright"
     c.model.n_keypoints = c.data.synthetic.n_keypoints
     c.model.shape_basis_size = 10
     c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 256
     c.model.n_layers = c.model.canonicalization_n_layers = 3
     c.model.argmin_translation = True  # the data has occlusions (paper Sec. 4.4)
     c.model.z_augment = True
-    c.model.z_augment_rot_angle = 3.14
+    c.model.z_augment_rot_angle = 0.3925
     c.optim.optimizer = "adam"
+    c.optim.lr = 3e-3
     c.optim.weight_decay = 0.0
     c.optim.lr_milestones = (8,)
     c.train.batch_size = 256
-    c.train.samples_per_epoch = 256 * 300
+    c.train.samples_per_epoch = 256 * 500
     c.train.epochs = 10
     return default.apply_variants(c, arg)

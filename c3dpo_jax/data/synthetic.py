@@ -28,6 +28,26 @@ def _random_rotations(rng: np.random.Generator, m: int) -> np.ndarray:
     )
 
 
+def _upright_rotations(rng: np.random.Generator, m: int, max_elevation: float) -> np.ndarray:
+    """(m, 3, 3) cameras looking at an upright object (y up) from any azimuth.
+
+    Azimuth uniform in [-pi, pi), elevation and roll uniform in +-max_elevation, like
+    the cameras around a standing person (Human3.6M) or the release's up3d views.
+    """
+    yaw = rng.uniform(-np.pi, np.pi, m)
+    pitch = rng.uniform(-max_elevation, max_elevation, m)
+    roll = rng.uniform(-max_elevation, max_elevation, m) / 2
+    c, s = np.cos, np.sin
+    one, zero = np.ones(m), np.zeros(m)
+    ry = np.stack([np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1),
+                   np.stack([-s(yaw), zero, c(yaw)], -1)], 1)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1),
+                   np.stack([zero, s(pitch), c(pitch)], -1)], 1)
+    rz = np.stack([np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1),
+                   np.stack([zero, zero, one], -1)], 1)
+    return np.einsum("mij,mjk,mkl->mil", rz, rx, ry)
+
+
 def shape_model(n_keypoints: int, n_modes: int, deformation: float, seed: int):
     """Mean shape (N, 3) with unequal principal extents, and modes (n_modes, N, 3)."""
     rng = np.random.default_rng(seed)
@@ -52,13 +72,21 @@ def make_split(
     perspective: bool,
     shape_seed: int,
     seed: int,
+    cameras: str = "uniform",
+    max_elevation: float = 0.5,
 ) -> KeypointData:
     """One split of ``n_samples`` views of the shape space made by ``shape_seed``."""
     mean, modes = shape_model(n_keypoints, n_modes, deformation, shape_seed)
     rng = np.random.default_rng(seed)
     coeffs = rng.normal(size=(n_samples, n_modes)).astype(np.float32)
     shapes = mean + np.einsum("md,dnc->mnc", coeffs, modes)
-    rots = _random_rotations(rng, n_samples).astype(np.float32)
+    if cameras == "uniform":
+        rots = _random_rotations(rng, n_samples)
+    elif cameras == "upright":
+        rots = _upright_rotations(rng, n_samples, max_elevation)
+    else:
+        raise ValueError(f"unknown cameras {cameras!r}: 'uniform' or 'upright'")
+    rots = rots.astype(np.float32)
     kp3d = np.einsum("mij,mnj->mni", rots, shapes)
     vis = (rng.uniform(size=(n_samples, n_keypoints)) >= occlusion).astype(np.float32)
     # Keep at least three visible points per view, the least a rotation can be fit to.
@@ -93,12 +121,19 @@ def make_splits(
     perspective: bool = False,
     n_train: int = 5000,
     n_test: int = 1000,
+    cameras: str = "uniform",
+    max_elevation: float = 0.5,
     seed: int = 0,
 ) -> tuple[KeypointData, KeypointData]:
-    """Train and test splits of one shape space; reproducible from ``seed``."""
+    """Train and test splits of one shape space; reproducible from ``seed``.
+
+    ``cameras``: ``"uniform"`` (Haar-random rotations) or ``"upright"`` (any azimuth,
+    elevation and roll within ``max_elevation`` radians).
+    """
     common = dict(
         n_keypoints=n_keypoints, n_modes=n_modes, deformation=deformation,
         occlusion=occlusion, noise=noise, perspective=perspective, shape_seed=seed,
+        cameras=cameras, max_elevation=max_elevation,
     )
     train = make_split(n_train, seed=seed + 1, **common)
     test = make_split(n_test, seed=seed + 2, **common)

@@ -1,0 +1,80 @@
+"""Evaluation protocol against brute-force numpy loops and known answers."""
+
+import numpy as np
+import pytest
+
+from c3dpo_jax import evaluation
+from c3dpo_jax.data import KeypointData
+
+
+def _data(gt, **kw):
+    m, n, _ = gt.shape
+    return KeypointData(kp=gt[..., :2].copy(), vis=np.ones((m, n)), kp3d=gt, **kw)
+
+
+def _loop_mpjpe(pred, gt):
+    return np.mean([np.linalg.norm(p - g) for p, g in zip(pred, gt)])
+
+
+def _loop_stress(pred, gt):
+    n = len(pred)
+    vals = [abs(np.linalg.norm(pred[i] - pred[j]) - np.linalg.norm(gt[i] - gt[j]))
+            for i in range(n) for j in range(i + 1, n)]
+    return np.mean(vals)
+
+
+def test_mpjpe_flip_and_stress_match_brute_force():
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(5, 6, 3))
+    pred = gt * np.array([1, 1, -1]) + 0.1 * rng.normal(size=gt.shape)
+    res = evaluation.evaluate(pred, _data(gt), "default")
+    gt_c = evaluation.center_depth(gt, np.ones((5, 6)))
+    pred_c = evaluation.center_depth(pred, np.ones((5, 6)))
+    orig = [_loop_mpjpe(p, g) for p, g in zip(pred_c, gt_c)]
+    flip = [_loop_mpjpe(p * [1, 1, -1], g) for p, g in zip(pred_c, gt_c)]
+    np.testing.assert_allclose(res["mpjpe_orig"], np.mean(orig))
+    np.testing.assert_allclose(res["mpjpe_flip"], np.mean(flip))
+    np.testing.assert_allclose(res["mpjpe"], np.mean(np.minimum(orig, flip)))
+    assert res["mpjpe"] < res["mpjpe_orig"]  # the flipped prediction is the better one
+    np.testing.assert_allclose(res["stress"], np.mean([_loop_stress(p, g) for p, g in zip(pred_c, gt_c)]))
+
+
+def test_known_answer_depth_offset_is_ignored_and_shift_is_not():
+    gt = np.zeros((1, 2, 3))
+    gt[0, 1] = [1, 0, 0]
+    pred = gt + np.array([0.0, 0.0, 7.0])  # a pure depth offset: removed by the protocol
+    assert evaluation.evaluate(pred, _data(gt))["mpjpe"] == pytest.approx(0.0)
+    pred = gt + np.array([0.3, 0.4, 0.0])  # an xy shift of length 0.5
+    assert evaluation.evaluate(pred, _data(gt))["mpjpe"] == pytest.approx(0.5)
+    assert evaluation.evaluate(pred, _data(gt))["stress"] == pytest.approx(0.0)
+
+
+def test_h36m_protocol_is_root_relative_scaled_and_averaged_per_action():
+    gt = np.zeros((3, 2, 3))
+    gt[:, 1] = [1, 0, 0]
+    pred = gt.copy()
+    pred[:, 1, 0] += np.array([0.1, 0.2, 0.6])  # per-sample errors 0.05, 0.1, 0.3 (mean over 2 joints)
+    pred += 5.0  # a global offset: removed by the root alignment
+    data = _data(gt, scale=np.array([10.0, 10.0, 10.0]), group=np.array([0, 0, 1]),
+                 group_names=("Walking", "Sitting"))
+    res = evaluation.evaluate(pred, data, "h36m")
+    np.testing.assert_allclose(res["per_group"]["Walking"], 0.75)
+    np.testing.assert_allclose(res["per_group"]["Sitting"], 3.0)
+    np.testing.assert_allclose(res["mpjpe"], (0.75 + 3.0) / 2)
+
+
+def test_pascal3d_protocol_masks_points_outside_the_class():
+    gt = np.zeros((1, 3, 3))
+    gt[0, 1] = [1, 0, 0]
+    pred = gt.copy()
+    pred[0, 2] = [100, 100, 100]  # garbage on a point of another class
+    data = _data(gt, class_mask=np.array([[1.0, 1.0, 0.0]]), group=np.array([0]), group_names=("car",))
+    assert evaluation.evaluate(pred, data, "pascal3d")["mpjpe"] == pytest.approx(0.0)
+
+
+def test_missing_ground_truth_and_unknown_protocol_are_clear_errors():
+    data = KeypointData(kp=np.zeros((1, 2, 2)), vis=np.ones((1, 2)))
+    with pytest.raises(ValueError, match="no 3D ground truth"):
+        evaluation.evaluate(np.zeros((1, 2, 3)), data)
+    with pytest.raises(ValueError, match="protocol"):
+        evaluation.evaluate(np.zeros((1, 2, 3)), _data(np.zeros((1, 2, 3))), "nope")

@@ -1,0 +1,52 @@
+"""Pseudo-Huber and the masked reductions against numpy re-implementations."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from c3dpo_jax import losses
+
+
+def test_huber_matches_its_definition_and_is_zero_at_zero():
+    d = np.array([0.0, 1e-6, 0.01, 1.0, 25.0])
+    eps = 0.01
+    expected = (np.sqrt(1 + d**2 / eps**2) - 1) * eps
+    np.testing.assert_allclose(losses.huber(jnp.asarray(d**2), eps), expected, rtol=1e-5, atol=1e-9)
+    assert float(losses.huber(jnp.zeros(()), eps)) == 0.0
+    # Large residuals are penalised linearly, small ones quadratically.
+    assert abs(float(losses.huber(jnp.asarray(100.0), eps)) - (10.0 - eps)) < 1e-3
+    np.testing.assert_allclose(losses.huber(jnp.asarray(1e-8), eps), 1e-8 / (2 * eps), rtol=1e-3)
+
+
+@pytest.mark.parametrize("normalization", ["kp_total_count", "kp_count_per_image"])
+def test_reprojection_reduction_matches_numpy(normalization):
+    rng = np.random.default_rng(0)
+    err = rng.uniform(size=(4, 7))
+    vis = (rng.uniform(size=(4, 7)) > 0.4).astype(float)
+    vis[0] = 0  # an image with nothing visible must not produce NaN
+    if normalization == "kp_total_count":
+        expected = (err * vis).sum() / vis.sum()
+    else:
+        expected = np.mean([(e * v).sum() / max(v.sum(), 1) for e, v in zip(err, vis)])
+    got = losses.reprojection(jnp.asarray(err), jnp.asarray(vis), normalization)
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+
+
+def test_reprojection_ignores_invisible_points():
+    err = jnp.array([[0.1, 0.2, 5.0]])
+    vis = jnp.array([[1.0, 1.0, 0.0]])
+    changed = err.at[0, 2].set(1e6)
+    assert float(losses.reprojection(err, vis, "kp_total_count")) == float(
+        losses.reprojection(changed, vis, "kp_total_count")
+    )
+
+
+def test_unknown_normalization_is_an_error():
+    with pytest.raises(ValueError, match="kp_per_nothing"):
+        losses.reprojection(jnp.ones((1, 2)), jnp.ones((1, 2)), "kp_per_nothing")
+
+
+def test_canonicalisation_is_the_mean_and_zero_without_samples():
+    c = jnp.array([[0.1, 0.3], [0.2, 0.4]])
+    np.testing.assert_allclose(losses.canonicalisation(c), 0.25, rtol=1e-6)
+    assert float(losses.canonicalisation(jnp.zeros((3, 0)))) == 0.0
