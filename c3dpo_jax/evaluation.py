@@ -92,10 +92,21 @@ def evaluate(pred: np.ndarray, data: KeypointData, protocol: str = "default") ->
     return out
 
 
-def format_table(rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress")) -> str:
-    """Plain-text table: one row per method, one column per metric."""
+def reprojection_error(kp_reprojected: np.ndarray, data: KeypointData) -> float:
+    """Mean 2D distance between reprojected and input visible points (input units).
+
+    The only score for 2D-only data (e.g. CUB birds, COCO imports).
+    """
+    dist = np.linalg.norm(np.asarray(kp_reprojected, np.float64) - data.kp, axis=-1)
+    return float((dist * data.vis).sum() / max(data.vis.sum(), 1.0))
+
+
+def format_table(rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection")) -> str:
+    """Plain-text table: one row per method, one column per metric ("-" where absent)."""
+    keys = [k for k in keys if any(k in res for res in rows.values())]
     width = max(len(name) for name in rows) + 2
     lines = ["method".ljust(width) + "".join(k.rjust(13) for k in keys)]
     for name, res in rows.items():
-        lines.append(name.ljust(width) + "".join(f"{res[k]:13.4f}" for k in keys))
+        cells = [f"{res[k]:13.4f}" if k in res else "-".rjust(13) for k in keys]
+        lines.append(name.ljust(width) + "".join(cells))
     return "\n".join(lines)

@@ -134,13 +134,20 @@ def predict(variables, data: KeypointData, model_cfg, batch_size: int = 1024, ev
 
 
 def evaluate_split(variables, data, model_cfg, protocol, eval_fn=None, batch_size=1024) -> dict:
+    """Test metrics: MPJPE/stress when the split has 3D ground truth, and always the
+    2D reprojection error of the visible points (the only score for 2D-only data)."""
     pred = predict(variables, data, model_cfg, batch_size, eval_fn)
-    return evaluation.evaluate(pred["shape_image_coord"], data, protocol)
+    # kp_reprojected is in the input's units (pixels for perspective models too).
+    reproj = evaluation.reprojection_error(pred["kp_reprojected"], data)
+    out = {"n_samples": len(data), "reprojection": reproj}
+    if data.kp3d is not None and protocol != "none":
+        out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
+    return out
 
 
 def baseline_results(train: KeypointData, test: KeypointData, protocol: str) -> dict:
     """Scores of the trivial baselines (orthographic data with 3D ground truth only)."""
-    if train.kp3d is None or test.kp3d is None or test.intrinsics is not None:
+    if train.kp3d is None or test.kp3d is None or test.intrinsics is not None or protocol == "none":
         return {}
     mean_shape = baselines.procrustes_mean_shape(train.kp3d)
     preds = baselines.predict(mean_shape, test.kp, test.vis)
@@ -270,8 +277,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
             writer.flush()
             res = evaluate_split(state.variables, test_data, model_cfg, protocol, eval_fn, eval_bs)
             history.append(dict(step=step, epoch=step // steps_per_epoch, **res))
-            logging.info("epoch %d: test mpjpe %.4f stress %.4f", step // steps_per_epoch,
-                         res["mpjpe"], res["stress"])
+            logging.info("epoch %d: test %s", step // steps_per_epoch,
+                         {k: v for k, v in res.items() if k != "per_group"})
             _write_results(workdir, {"history": history})
     writer.flush()
     pbar.close()

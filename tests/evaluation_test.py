@@ -78,3 +78,14 @@ def test_missing_ground_truth_and_unknown_protocol_are_clear_errors():
         evaluation.evaluate(np.zeros((1, 2, 3)), data)
     with pytest.raises(ValueError, match="protocol"):
         evaluation.evaluate(np.zeros((1, 2, 3)), _data(np.zeros((1, 2, 3))), "nope")
+
+
+def test_reprojection_error_counts_visible_points_only():
+    data = KeypointData(kp=np.zeros((1, 3, 2)), vis=np.array([[1.0, 1.0, 0.0]]))
+    reproj = np.array([[[3.0, 4.0], [0.0, 1.0], [100.0, 100.0]]])
+    assert evaluation.reprojection_error(reproj, data) == pytest.approx(3.0)
+
+
+def test_table_marks_missing_metrics():
+    table = evaluation.format_table({"a": {"mpjpe": 1.0, "reprojection": 2.0}, "b": {"mpjpe": 3.0}})
+    assert "reprojection" in table and table.splitlines()[2].rstrip().endswith("-")

@@ -1,0 +1,18 @@
+"""Human3.6M with ground-truth 2D keypoints. Release pretrained: MPJPE 95.63, stress 41.59.
+
+  python -m c3dpo_jax.main --config=configs/h36m.py --workdir=runs/h36m \
+      --config.data.train_path=h36m_train.json --config.data.test_path=h36m_val.json
+
+Official hyperparameters (release cfgs, see configs/release.py). `:smoke` runs on
+generated data with K=17 so it works without the files.
+"""
+
+from configs.release import release_config
+
+
+def get_config(arg=None):
+    return release_config(
+        arg, name="h36m", n_keypoints=17, basis=10, batch_size=1024, rescale=1.0,
+        argmin_translation=False, z_augment_angle=0.3925, samples_per_epoch=1_249_280, epochs=90,
+        milestones=(60, 80), protocol="h36m", class_balanced=False,
+    )
