@@ -46,3 +46,29 @@ def test_wrong_keypoint_count_is_a_clear_error(tmp_path):
                "--config.model.n_keypoints=7")
     assert out.returncode != 0
     assert "config.model.n_keypoints=20" in out.stderr
+
+
+def _write_release_json(path, data):
+    entries = [{"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist(),
+                "kp_loc_3d": data.kp3d[i].T.tolist()} for i in range(len(data))]
+    with open(path, "w") as f:
+        json.dump(entries, f)
+
+
+def test_release_config_trains_on_json_files_and_resumes(tmp_path):
+    from c3dpo_jax.data import synthetic
+
+    train, test = synthetic.make_splits(n_keypoints=79, n_train=64, n_test=16, seed=3)
+    _write_release_json(tmp_path / "a.json", train)
+    _write_release_json(tmp_path / "b.json", test)
+    args = ["--config=configs/up3d.py:smoke", f"--workdir={tmp_path / 'run'}",
+            f"--config.data.train_path={tmp_path / 'a.json'}",
+            f"--config.data.test_path={tmp_path / 'b.json'}", "--config.train.num_steps=10"]
+    first = _run(*args)
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert "(16 samples, protocol 'default')" in first.stdout
+    args[-1] = "--config.train.num_steps=20"  # continue the same run further
+    second = _run(*args)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "resumed from the checkpoint at step 10" in second.stderr
+    assert json.loads(_read(str(tmp_path / "run"), "eval_results.json"))["final"]["step"] == 20
