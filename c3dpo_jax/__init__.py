@@ -1,0 +1,14 @@
+"""C3DPO (Novotny et al., ICCV 2019) in JAX/Flax.
+
+Public API (light imports only; plotting lives in ``c3dpo_jax.visualise``)::
+
+    from c3dpo_jax import load, reconstruct
+    params = load("runs/synthetic")
+    rec = reconstruct(params, kp, vis)  # kp (N, 2) or (B, N, 2), vis (N,) or (B, N)
+"""
+
+from c3dpo_jax.convert import from_official
+from c3dpo_jax.model import ModelConfig
+from c3dpo_jax.reconstruct import C3DPOParams, Reconstruction, load, reconstruct
+
+__all__ = ["C3DPOParams", "ModelConfig", "Reconstruction", "from_official", "load", "reconstruct"]

@@ -1,0 +1,199 @@
+"""Use a trained model: ``load(workdir)`` then ``reconstruct(params, kp, vis)``.
+
+Glossary: B batch, N keypoints, D shape-basis size. Inputs are user coordinates
+(pixels, or whatever units the model was trained on), points on the last axis:
+``kp (N, 2)`` or ``(B, N, 2)``, ``vis (N,)`` or ``(B, N)`` in {0, 1}.
+
+``reconstruct`` checks its input on the host (clear ``ValueError`` s, before any
+tracing), pads the batch to the next power of two and runs one jitted, vmapped
+``model.forward_eval``: a model compiles once per bucket size (1, 2, 4, ...), not once
+per batch size. Outputs are numpy arrays with the input's leading dimensions.
+"""
+
+import json
+import os
+from typing import Any, NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+
+from c3dpo_jax import checkpoint, model
+from c3dpo_jax.model import ModelConfig
+from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer
+
+
+@flax.struct.dataclass
+class C3DPOParams:
+    """A model ready for inference: ``{"params", "batch_stats"}`` + static settings."""
+
+    variables: Any
+    config: ModelConfig = flax.struct.field(pytree_node=False)
+
+
+class Reconstruction(NamedTuple):
+    """Numpy outputs; leading dims ``*B`` as the input's (none for one sample).
+
+    shape_3d (*B, N, 3): the 3D points in the camera frame, in the input's units
+      (= ``forward_eval``'s ``shape_image_coord``; depth sign is arbitrary).
+    shape_canonical (*B, N, 3): the shape in the model's canonical frame.
+    rotation (*B, 3, 3): camera rotation, ``shape_camera = shape_canonical @ R.T``.
+    alpha (*B, D): shape-basis coefficients.
+    kp_reprojected (*B, N, 2): the 3D shape projected back to input coordinates.
+    """
+
+    shape_3d: np.ndarray
+    shape_canonical: np.ndarray
+    rotation: np.ndarray
+    alpha: np.ndarray
+    kp_reprojected: np.ndarray
+
+
+def _template(model_cfg: ModelConfig, optim: dict | None):
+    """The TrainState pytree (shapes only) that a workdir's checkpoints hold."""
+    tx = make_optimizer(OptimConfig.from_dict(optim or {}), steps_per_epoch=1)
+    return jax.eval_shape(lambda k: create_train_state(k, model_cfg, tx), jax.random.key(0))
+
+
+def _split_path(path: str) -> tuple[str, int | None]:
+    """``workdir`` or ``workdir/checkpoints/<step>`` -> (workdir, step or None)."""
+    path = os.path.abspath(os.path.expanduser(path))
+    if os.path.exists(os.path.join(path, checkpoint.CONFIG_FILE)):
+        return path, None
+    parent, step = os.path.split(path)
+    workdir, ckpt_dir = os.path.split(parent)
+    if ckpt_dir == checkpoint.CHECKPOINT_DIR and step.isdigit():
+        return workdir, int(step)
+    raise FileNotFoundError(
+        f"{path!r} is neither a workdir (with {checkpoint.CONFIG_FILE}) nor a "
+        f"checkpoint step directory (WORKDIR/{checkpoint.CHECKPOINT_DIR}/<step>)"
+    )
+
+
+def load(path: str) -> C3DPOParams:
+    """Loads a trained model from a workdir (latest step) or one checkpoint step dir."""
+    workdir, step = _split_path(path)
+    config = checkpoint.load_config(workdir)
+    if config is None or "model" not in config:
+        raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")
+    model_cfg = ModelConfig.from_dict(config["model"])
+    state, _ = checkpoint.restore_latest(workdir, _template(model_cfg, config.get("optim")), step)
+    return C3DPOParams(variables=state.variables, config=model_cfg)
+
+
+def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = None) -> str:
+    """Writes ``params`` as a normal c3dpo_jax workdir (config.json + orbax checkpoint).
+
+    Args:
+      params: the model.
+      workdir: directory to create.
+      config_dict: a full resolved config (e.g. ``get_config().to_dict()``); its
+        ``model`` section is replaced by ``params.config``. Its ``optim`` section picks
+        the (fresh) optimiser state saved alongside, so that ``--mode=eval`` with the
+        same config restores it.
+
+    Returns:
+      The workdir.
+    """
+    config = json.loads(json.dumps(dict(config_dict or {}), default=list))
+    config["model"] = params.config.to_dict()
+    os.makedirs(workdir, exist_ok=True)
+    checkpoint.save_config(workdir, config)
+    tx = make_optimizer(OptimConfig.from_dict(config.get("optim", {})), steps_per_epoch=1)
+    state = create_train_state(jax.random.key(0), params.config, tx)
+    state = state.replace(params=params.variables["params"],
+                          batch_stats=params.variables["batch_stats"])
+    manager = checkpoint.make_manager(workdir, save_every=1)
+    checkpoint.save(manager, 0, state, force=True)
+    manager.wait_until_finished()
+    manager.close()
+    return workdir
+
+
+def _bucket(b: int) -> int:
+    return 1 << max(b - 1, 0).bit_length()
+
+
+def _as_batch(name: str, x, tail: tuple[int, ...], single: bool) -> np.ndarray:
+    try:
+        x = np.asarray(x, dtype=np.float32)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} is not a numeric array ({err})") from None
+    want = tail if single else ("B", *tail)
+    if x.ndim != len(want) or x.shape[x.ndim - len(tail):] != tail:
+        raise ValueError(f"{name} has shape {x.shape}, expected {want}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return x[None] if single else x
+
+
+def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
+    """Host-side validation; returns batched float32 arrays (K and class_mask may be None)."""
+    n = cfg.n_keypoints
+    kp_shape = np.shape(kp)
+    if len(kp_shape) not in (2, 3) or kp_shape[-1] != 2:
+        raise ValueError(f"kp has shape {kp_shape}, expected (N, 2) or (B, N, 2) with N = {n}")
+    if kp_shape[-2] != n:
+        raise ValueError(f"kp has {kp_shape[-2]} keypoints but the model expects N = {n}")
+    single = len(kp_shape) == 2
+    kp = _as_batch("kp", kp, (n, 2), single)
+    vis = _as_batch("vis", vis, (n,), single)
+    if vis.shape[0] != kp.shape[0]:
+        raise ValueError(f"vis has batch size {vis.shape[0]} but kp has {kp.shape[0]}")
+    if np.any((vis != 0) & (vis != 1)):
+        raise ValueError("vis must contain only 0 and 1")
+    empty = np.flatnonzero(vis.sum(axis=1) == 0)
+    if empty.size:
+        raise ValueError(f"sample(s) {empty[:10].tolist()} have no visible keypoint")
+    if class_mask is not None:
+        class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), np.ndim(class_mask) == 1),
+                                     vis.shape)
+    if cfg.projection_type == "perspective":
+        if K is None:
+            raise ValueError("this is a perspective model: pass the intrinsics K, (3, 3) or (B, 3, 3)")
+        K = np.broadcast_to(_as_batch("K", K, (3, 3), np.ndim(K) == 2), (*vis.shape[:1], 3, 3))
+    elif K is not None:
+        raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
+    return single, kp * vis[..., None], vis, K, class_mask
+
+
+@jax.jit
+def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
+    def one(kp, vis, cm, K):
+        return model.forward_eval(params.variables, kp, vis, cm, K, params.config)
+
+    out = jax.vmap(one, in_axes=(0, 0, 0, None if K is None else 0))(kp, vis, class_mask, K)
+    return Reconstruction(out["shape_image_coord"], out["shape_canonical"], out["rotation"],
+                          out["alpha"], out["kp_reprojected"])
+
+
+def reconstruct(
+    params: C3DPOParams,
+    kp: ArrayLike,
+    vis: ArrayLike,
+    K: ArrayLike | None = None,
+    class_mask: ArrayLike | None = None,
+) -> Reconstruction:
+    """3D reconstruction of 2D keypoints with a trained model (eval mode).
+
+    Args:
+      params: from ``load`` or ``convert.from_official``.
+      kp: (N, 2) or (B, N, 2) keypoints in the units the model was trained on
+        (invisible points may hold anything finite; they are zeroed).
+      vis: (N,) or (B, N), 1 visible, 0 not; every sample needs a visible point.
+      K: intrinsics (3, 3) or (B, 3, 3); required by perspective models only.
+      class_mask: (N,) or (B, N) block of the sample's class (multi-class models).
+
+    Returns:
+      A ``Reconstruction`` of numpy arrays with the input's leading dimensions.
+    """
+    single, kp, vis, K, class_mask = _check_inputs(params.config, kp, vis, K, class_mask)
+    if class_mask is None:
+        class_mask = np.ones_like(vis)
+    b = kp.shape[0]
+    idx = np.arange(_bucket(b)) % b  # pad by repeating valid samples
+    padded = [None if a is None else jnp.asarray(a[idx]) for a in (kp, vis, class_mask, K)]
+    out = jax.device_get(_reconstruct_batch(params, *padded))
+    return Reconstruction(*(np.asarray(a[0] if single else a[:b]) for a in out))
