@@ -29,16 +29,29 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c = ml_collections.ConfigDict()
     c.seed = 0
     c.data = dict(
-        name="synthetic",
-        source="synthetic",  # used when train_path is empty
+        name="synthetic",  # with source="release": a release dataset name (data/download.py)
+        # Used when train_path is empty: "synthetic" | "humans" | "categories" | "release".
+        source="synthetic",
         train_path="",
         test_path="",
+        data_dir="",  # release downloads: "" = $C3DPO_DATA_DIR or ~/.cache/c3dpo_jax
+        min_visible=2,  # JSON entries with fewer visible points are invalid
+        drop_invalid=False,  # drop (and log) invalid JSON entries instead of failing
         protocol="default",  # "default" | "up3d" | "h36m" | "pascal3d"
         class_balanced=False,  # draw a class uniformly, then an image of it
         synthetic=dict(
             n_keypoints=20, n_modes=3, deformation=0.35, occlusion=0.1, noise=0.0,
             perspective=False, n_train=5000, n_test=1000, cameras="uniform",
             max_elevation=0.5, seed=0,
+        ),
+        humans=dict(  # data/humans.py: 17 H36M-order joints (+ dense surface points)
+            n_train_poses=300, n_test_poses=50, views_per_pose=30, dense_points=0,
+            cameras="upright", max_elevation=0.5, noise=0.0, self_occlusion=True, seed=0,
+        ),
+        categories=dict(  # data/categories.py: 5 classes packed into 45 keypoints
+            n_train=5000, n_test=1000,
+            classes=("aeroplane", "bottle", "car", "chair", "diningtable"),
+            variation=1.0, occlusion=0.1, noise=0.0, max_elevation=0.6, seed=0,
         ),
     )
     c.model = dataclasses.asdict(ModelConfig())
@@ -81,4 +94,7 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         c.train.eval_batch_size = 64
         c.data.synthetic.n_train = 256
         c.data.synthetic.n_test = 64
+        c.data.humans.n_train_poses, c.data.humans.n_test_poses = 16, 4
+        c.data.humans.views_per_pose = 16
+        c.data.categories.n_train, c.data.categories.n_test = 256, 64
     return c

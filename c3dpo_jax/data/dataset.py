@@ -3,9 +3,9 @@
 Glossary: M samples, N keypoints. Keypoints ``kp (M, N, 2)``, visibility
 ``vis (M, N)`` in {0, 1}, optional 3D ground truth ``kp3d (M, N, 3)`` in the camera
 frame, optional ``class_mask (M, N)``, ``kp_defined (M, N)``, ``intrinsics (M, 3, 3)``,
-``scale (M,)`` (h36m's metric scale), and ``group (M,)`` integer ids with
+``scale (M,)`` (h36m's metric scale), ``group (M,)`` integer ids with
 ``group_names`` (actions for h36m, classes for multi-class data) used by the
-evaluation protocol.
+evaluation protocol, and ``image_path (M,)`` strings when the source names images.
 """
 
 import dataclasses
@@ -25,13 +25,15 @@ class KeypointData:
     group: np.ndarray | None = None
     group_names: tuple[str, ...] = ()
     name: str = ""
+    image_path: np.ndarray | None = None  # (M,) str, when the JSON entries name images
 
     def __post_init__(self):
         m, n = self.vis.shape
         if self.kp.shape != (m, n, 2):
             raise ValueError(f"kp has shape {self.kp.shape}, expected {(m, n, 2)} (from vis)")
         for field, tail in (("kp3d", (n, 3)), ("class_mask", (n,)), ("kp_defined", (n,)),
-                            ("intrinsics", (3, 3)), ("scale", ()), ("group", ())):
+                            ("intrinsics", (3, 3)), ("scale", ()), ("group", ()),
+                            ("image_path", ())):
             value = getattr(self, field)
             if value is not None and value.shape != (m, *tail):
                 raise ValueError(f"{field} has shape {value.shape}, expected {(m, *tail)}")
@@ -71,18 +73,32 @@ def load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
     """Returns ``(train, test)`` for a ``config.data`` section.
 
     ``train_path``/``test_path`` (the release's JSON format) win when set; otherwise
-    ``source == "synthetic"`` generates the built-in low-rank dataset.
+    ``source`` picks a generated dataset (``"synthetic"``, ``"humans"``,
+    ``"categories"``, with parameters in ``config.data.<source>``) or ``"release"``,
+    which resolves ``config.data.name`` to the release's files (downloaded once).
     """
-    from c3dpo_jax.data import json_dataset, synthetic
+    from c3dpo_jax.data import categories, download, humans, json_dataset, synthetic
+
+    def load_json(path):
+        return json_dataset.load(path, min_visible=data_cfg.get("min_visible", 2),
+                                 drop_invalid=data_cfg.get("drop_invalid", False))
 
     if data_cfg.train_path:
         if not data_cfg.test_path:
             raise ValueError("config.data.train_path is set but config.data.test_path is not")
-        return json_dataset.load(data_cfg.train_path), json_dataset.load(data_cfg.test_path)
-    if data_cfg.source == "synthetic":
-        return synthetic.make_splits(**dict(data_cfg.synthetic))
+        return load_json(data_cfg.train_path), load_json(data_cfg.test_path)
+    generators = {"synthetic": synthetic.make_splits, "humans": humans.make_splits,
+                  "categories": categories.make_splits}
+    if data_cfg.source in generators:
+        return generators[data_cfg.source](**dict(data_cfg[data_cfg.source]))
+    if data_cfg.source == "json":
+        raise ValueError("this config trains on your own JSON files: pass "
+                         "--config.data.train_path=TRAIN.json --config.data.test_path=TEST.json")
+    if data_cfg.source == "release":
+        paths = download.dataset_files(data_cfg.name, directory=data_cfg.get("data_dir") or None)
+        return load_json(paths[0]), load_json(paths[1])
     raise ValueError(
-        f"dataset {data_cfg.get('name', '?')!r} needs files: pass "
-        "--config.data.train_path=TRAIN.json --config.data.test_path=TEST.json "
-        "(the release's JSON format, see README 'Data'), or use configs/synthetic.py"
+        f"unknown config.data.source {data_cfg.source!r}: one of {sorted(generators)} or "
+        "'release'; or pass --config.data.train_path=TRAIN.json "
+        "--config.data.test_path=TEST.json (the release's JSON format, see docs/data.md)"
     )

@@ -1,51 +1,115 @@
-"""The release's JSON dataset format -> ``KeypointData`` (numpy only).
+"""The release's JSON dataset format -> ``KeypointData`` (numpy only), validated and cached.
 
 A file is a JSON list of entries, or ``{"dataset": name, "data": [...]}``. Each entry
 has ``kp_loc`` (2 x N) and ``kp_vis`` (N,), and optionally ``kp_loc_3d`` (3 x N),
-``class_mask`` (N,), ``kp_defined`` (N,), ``K`` (3 x 3 intrinsics), ``h36m_info``
-(``scale``, ``action_name``) and ``p3d_info`` (``p3d_class``, ``bbox`` [x, y, w, h]).
-The ``2 x N`` layout is transposed here, once, to points-on-the-last-axis.
+``class_mask`` (N,), ``kp_defined`` (N,), ``K`` (3 x 3 intrinsics), ``image_path``,
+``h36m_info`` (``scale``, ``action_name``) and ``p3d_info`` (``p3d_class``, ``bbox``
+[x, y, w, h]). The ``2 x N`` layout is transposed here, once, to points-on-the-last-axis.
 PASCAL3D+ rule (as in the release): keypoints outside the bbox enlarged by 10% on
 each side are made invisible.
+
+Validation names the entry index and field of every problem: a missing field, a
+ragged list, a keypoint count N that differs from the other entries, NaN/inf,
+visibility not in {0, 1}, and fewer than ``min_visible`` visible points. Problems
+raise ``ValueError`` unless ``drop_invalid=True``, which drops (and logs) the entries.
+
+``load`` converts a file once and caches the arrays next to it
+(``FILE.json`` -> ``FILE.c3dpo_cache.npz``), keyed by the file's size, mtime, an md5
+of its first and last MiB, the parse options and ``CACHE_VERSION``; a stale or
+unreadable cache is rebuilt, never trusted.
 """
 
+import collections
+import hashlib
 import json
 import os
+import tempfile
 
 import numpy as np
+from absl import logging
 
 from c3dpo_jax.data.dataset import KeypointData
 
-
-def _array(entry: dict, field: str, index: int, shape: tuple[int, ...]) -> np.ndarray:
-    try:
-        value = np.asarray(entry[field], dtype=np.float32)
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"entry {index}: field {field!r} is not a numeric array ({err})") from None
-    if value.shape != shape:
-        raise ValueError(f"entry {index}: field {field!r} has shape {value.shape}, expected {shape}")
-    if not np.all(np.isfinite(value)):
-        raise ValueError(f"entry {index}: field {field!r} contains NaN or inf")
-    return value
+CACHE_VERSION = 1
+_MAX_LISTED = 5
+_OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
 
 
-def _stack_optional(entries, field, shape, transpose=False):
-    present = [field in e for e in entries]
-    if not any(present):
-        return None
-    if not all(present):
-        missing = present.index(False)
-        raise ValueError(f"entry {missing}: field {field!r} is missing (other entries have it)")
-    values = [_array(e, field, i, shape) for i, e in enumerate(entries)]
-    return np.stack([v.T if transpose else v for v in values])
+class _Problems:
+    """Per-entry problems, in entry order; the first one per entry is kept."""
+
+    def __init__(self):
+        self.by_entry: dict[int, str] = {}
+
+    def add(self, i, message: str) -> None:
+        self.by_entry.setdefault(int(i), f"entry {int(i)}: {message}")
+
+    def raise_or_drop(self, n_entries: int, drop_invalid: bool, name: str) -> np.ndarray:
+        """Indices of the entries to keep (raises unless ``drop_invalid``)."""
+        if not self.by_entry:
+            return np.arange(n_entries)
+        msgs = [self.by_entry[i] for i in sorted(self.by_entry)]
+        if not drop_invalid:
+            more = len(msgs) - _MAX_LISTED
+            tail = f"\n  ... and {more} more" if more > 0 else ""
+            raise ValueError(
+                f"dataset {name!r}: {len(msgs)} invalid entries:\n  "
+                + "\n  ".join(msgs[:_MAX_LISTED]) + tail
+                + "\n(fix them, or pass drop_invalid=True / --config.data.drop_invalid=True "
+                "to drop them)"
+            )
+        logging.warning("dataset %r: dropped %d of %d invalid entries; first: %s",
+                        name, len(msgs), n_entries, msgs[0])
+        keep = np.ones(n_entries, bool)
+        keep[sorted(self.by_entry)] = False
+        return np.flatnonzero(keep)
+
+
+def _stack(entries, field: str, shape: tuple, problems: _Problems) -> np.ndarray:
+    """(M, *shape) float32; ragged, non-numeric or misshaped entries become problems (NaN)."""
+    try:  # Fast path: one conversion for the whole file.
+        arr = np.asarray([e[field] for e in entries], dtype=np.float32)
+        if arr.shape[1:] == shape:
+            return arr
+    except (ValueError, TypeError):
+        pass
+    out = np.full((len(entries), *shape), np.nan, np.float32)
+    for i, e in enumerate(entries):
+        try:
+            value = np.asarray(e[field], dtype=np.float32)
+        except (ValueError, TypeError):
+            problems.add(i, f"field {field!r} is a ragged or non-numeric list")
+            continue
+        if value.shape != shape:
+            problems.add(i, f"field {field!r} has shape {value.shape}, expected {shape}")
+            continue
+        out[i] = value
+    return out
+
+
+def _check_finite(i_bad: np.ndarray, field: str, problems: _Problems) -> None:
+    for i in i_bad:
+        problems.add(i, f"field {field!r} contains NaN or inf")
+
+
+def _n_keypoints(entries, problems: _Problems) -> int:
+    """The most common length of ``kp_vis``; entries with another length are problems."""
+    lengths = [len(e["kp_vis"]) if isinstance(e.get("kp_vis"), list) else -1 for e in entries]
+    n = collections.Counter(x for x in lengths if x >= 0).most_common(1)
+    n = n[0][0] if n else 0
+    for i, length in enumerate(lengths):
+        if length != n:
+            what = "is not a list" if length < 0 else f"has {length} keypoints"
+            problems.add(i, f"field 'kp_vis' {what} but the dataset has {n} keypoints "
+                            "(K must be the same in every entry)")
+    return n
 
 
 def _bbox_visibility(kp: np.ndarray, bboxes: np.ndarray) -> np.ndarray:
     """1 where a point lies inside its bbox enlarged by 10% on each side."""
     x, y, w, h = (bboxes[:, i : i + 1] for i in range(4))
-    x0, x1 = x - 0.1 * w, x + 1.1 * w
-    y0, y1 = y - 0.1 * h, y + 1.1 * h
-    inside = (kp[..., 0] >= x0) & (kp[..., 0] <= x1) & (kp[..., 1] >= y0) & (kp[..., 1] <= y1)
+    inside = ((kp[..., 0] >= x - 0.1 * w) & (kp[..., 0] <= x + 1.1 * w)
+              & (kp[..., 1] >= y - 0.1 * h) & (kp[..., 1] <= y + 1.1 * h))
     return inside.astype(np.float32)
 
 
@@ -55,53 +119,180 @@ def _groups(names: list[str]) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.array([lookup[n] for n in names], np.int32), unique
 
 
-def parse(obj, name: str = "") -> KeypointData:
-    """Parses the decoded JSON (a list, or the ``{"dataset", "data"}`` wrapper)."""
+def _unwrap(obj, name: str):
     if isinstance(obj, dict):
         if "data" not in obj:
-            raise ValueError("a JSON object dataset needs a 'data' list")
-        name = obj.get("dataset", name)
+            raise ValueError(f"dataset {name!r}: a JSON object dataset needs a 'data' list")
+        name = obj.get("dataset", name) or name
         obj = obj["data"]
     if not isinstance(obj, list) or not obj:
-        raise ValueError("a dataset must be a non-empty list of entries")
-    for i, entry in enumerate(obj):
+        raise ValueError(f"dataset {name!r}: a dataset must be a non-empty list of entries")
+    return obj, name
+
+
+def _check_required(entries, problems: _Problems) -> None:
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict):
+            problems.add(i, f"is a {type(e).__name__}, not an object with 'kp_loc' and 'kp_vis'")
+            continue
         for field in ("kp_loc", "kp_vis"):
-            if field not in entry:
-                raise ValueError(f"entry {i}: required field {field!r} is missing")
-    n = len(obj[0]["kp_vis"])
-    kp = np.stack([_array(e, "kp_loc", i, (2, n)).T for i, e in enumerate(obj)])
-    vis = np.stack([_array(e, "kp_vis", i, (n,)) for i, e in enumerate(obj)])
-    bad = np.argwhere((vis != 0) & (vis != 1))
-    if bad.size:
-        i, k = bad[0]
-        raise ValueError(f"entry {i}: field 'kp_vis' has value {vis[i, k]} at point {k} (not 0 or 1)")
-    fields = dict(
-        kp3d=_stack_optional(obj, "kp_loc_3d", (3, n), transpose=True),
-        class_mask=_stack_optional(obj, "class_mask", (n,)),
-        kp_defined=_stack_optional(obj, "kp_defined", (n,)),
-        intrinsics=_stack_optional(obj, "K", (3, 3)),
-    )
-    if all("h36m_info" in e for e in obj):
-        fields["scale"] = np.array([e["h36m_info"].get("scale", 1.0) for e in obj], np.float32)
-        actions = [str(e["h36m_info"].get("action_name", "")) for e in obj]
-        fields["group"], fields["group_names"] = _groups(actions)
-    if all("p3d_info" in e for e in obj):
-        classes = [str(e["p3d_info"].get("p3d_class", "")) for e in obj]
-        fields["group"], fields["group_names"] = _groups(classes)
-        if all("bbox" in e["p3d_info"] for e in obj):
-            bboxes = np.array([e["p3d_info"]["bbox"] for e in obj], np.float32)
-            vis = vis * _bbox_visibility(kp, bboxes)
+            if field not in e:
+                problems.add(i, f"required field {field!r} is missing")
+
+
+def _optional_fields(entries, n: int, problems: _Problems) -> dict:
+    out = {}
+    specs = [(f, (rows, n) if rows else (n,), t) for f, rows, t in _OPTIONAL]
+    specs.append(("K", (3, 3), False))
+    for field, shape, transpose in specs:
+        present = [field in e for e in entries]
+        if not any(present):
+            continue
+        for i in np.flatnonzero(~np.asarray(present)):
+            problems.add(i, f"field {field!r} is missing (other entries have it)")
+        filled = [e if field in e else {field: np.zeros(shape).tolist()} for e in entries]
+        value = _stack(filled, field, shape, problems)
+        _check_finite(np.flatnonzero(~np.isfinite(value).reshape(len(value), -1).all(1)),
+                      field, problems)
+        out[field] = np.swapaxes(value, 1, 2) if transpose else value
+    return out
+
+
+def _info_fields(entries) -> dict:
+    out = {}
+    if all("image_path" in e for e in entries):
+        out["image_path"] = np.array([str(e["image_path"]) for e in entries])
+    if all(isinstance(e.get("h36m_info"), dict) for e in entries):
+        out["scale"] = np.array([e["h36m_info"].get("scale", 1.0) for e in entries], np.float32)
+        out["group"], out["group_names"] = _groups(
+            [str(e["h36m_info"].get("action_name", "")) for e in entries])
+    if all(isinstance(e.get("p3d_info"), dict) for e in entries):
+        out["group"], out["group_names"] = _groups(
+            [str(e["p3d_info"].get("p3d_class", "")) for e in entries])
+        if all("bbox" in e["p3d_info"] for e in entries):
+            out["bbox"] = np.array([e["p3d_info"]["bbox"] for e in entries], np.float32)
+    return out
+
+
+def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = False
+          ) -> KeypointData:
+    """Parses and validates decoded JSON (a list, or the ``{"dataset", "data"}`` wrapper).
+
+    Args:
+      obj: the decoded JSON.
+      name: dataset name used in messages (the wrapper's ``dataset`` wins).
+      min_visible: entries with fewer visible points are invalid.
+      drop_invalid: drop invalid entries (logged with their count) instead of raising.
+    Returns:
+      the valid entries as ``KeypointData``.
+    """
+    entries, name = _unwrap(obj, name)
+    problems = _Problems()
+    _check_required(entries, problems)
+    ok = [e if i not in problems.by_entry else {"kp_loc": [[]], "kp_vis": []}
+          for i, e in enumerate(entries)]
+    n = _n_keypoints(ok, problems)
+    kp = np.swapaxes(_stack(ok, "kp_loc", (2, n), problems), 1, 2)
+    vis = _stack(ok, "kp_vis", (n,), problems)
+    _check_finite(np.flatnonzero(~np.isfinite(kp).all((1, 2))), "kp_loc", problems)
+    bad_vis = ~((vis == 0) | (vis == 1) | np.isnan(vis))
+    for i, k in zip(*np.nonzero(bad_vis), strict=True):
+        problems.add(i, f"field 'kp_vis' has value {vis[i, k]:g} at point {k} (must be 0 or 1)")
+    counts = np.nansum(vis, axis=1)
+    for i in np.flatnonzero(counts < min_visible):
+        problems.add(i, f"field 'kp_vis' has {int(counts[i])} visible points, fewer than "
+                        f"min_visible={min_visible}")
+    fields = _optional_fields(ok, n, problems)
+    fields.update(_info_fields(ok))
+    keep = problems.raise_or_drop(len(entries), drop_invalid, name)
+    if len(keep) == 0:
+        raise ValueError(f"dataset {name!r}: every entry is invalid")
+    fields = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in fields.items()}
+    kp, vis = kp[keep], vis[keep]
+    if "bbox" in fields:
+        vis = vis * _bbox_visibility(kp, fields.pop("bbox"))
+    if "kp_loc_3d" in fields:
+        fields["kp3d"] = fields.pop("kp_loc_3d")
+    if "K" in fields:
+        fields["intrinsics"] = fields.pop("K")
     return KeypointData(kp=kp, vis=vis, name=name, **fields)
 
 
-def load(path: str) -> KeypointData:
-    """Reads one JSON file of the release's format."""
+def check_n_keypoints(data: KeypointData, n_keypoints: int) -> None:
+    """Raises a ``ValueError`` that says how to fix a model/dataset keypoint mismatch."""
+    if data.n_keypoints != n_keypoints:
+        raise ValueError(
+            f"dataset {data.name!r} has K={data.n_keypoints} keypoints but the model expects "
+            f"{n_keypoints}; set --config.model.n_keypoints={data.n_keypoints}"
+        )
+
+
+def cache_path(path: str) -> str:
+    """``FILE.json`` -> ``FILE.c3dpo_cache.npz``."""
+    return path.removesuffix(".json") + ".c3dpo_cache.npz"
+
+
+def _fingerprint(path: str, options: dict) -> str:
+    st = os.stat(path)
+    h = hashlib.md5()
+    with open(path, "rb") as f:
+        h.update(f.read(1 << 20))
+        if st.st_size > 1 << 20:
+            f.seek(max(st.st_size - (1 << 20), 1 << 20))
+            h.update(f.read())
+    return json.dumps(dict(version=CACHE_VERSION, size=st.st_size, mtime_ns=st.st_mtime_ns,
+                           md5_ends=h.hexdigest(), **options), sort_keys=True)
+
+
+def _read_cache(cpath: str, key: str) -> KeypointData | None:
+    try:
+        with np.load(cpath, allow_pickle=False) as z:
+            if str(z["__key__"]) != key:
+                logging.info("cache %s is stale; rebuilding it", cpath)
+                return None
+            fields = {k: z[k] for k in z.files if not k.startswith("__")}
+            return KeypointData(**fields, name=str(z["__name__"]),
+                                group_names=tuple(str(g) for g in z["__group_names__"]))
+    except FileNotFoundError:
+        return None
+    except Exception as err:  # A corrupt or foreign file is rebuilt, never trusted.
+        logging.warning("cache %s is unreadable (%s); rebuilding it", cpath, err)
+        return None
+
+
+def _write_cache(cpath: str, key: str, data: KeypointData) -> None:
+    arrays = {k: v for k, v in vars(data).items() if isinstance(v, np.ndarray)}
+    arrays.update(__key__=np.array(key), __name__=np.array(data.name),
+                  __group_names__=np.array(list(data.group_names), dtype=str))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(cpath) or ".", suffix=".tmp.npz")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, cpath)
+    except OSError as err:
+        logging.warning("could not write the cache %s (%s); continuing without it", cpath, err)
+
+
+def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: bool = True
+         ) -> KeypointData:
+    """Reads one JSON file of the release's format (through its ``.c3dpo_cache.npz``)."""
     path = os.path.expanduser(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"dataset file {path!r} does not exist")
+    name = os.path.basename(path).removesuffix(".json")
+    key = _fingerprint(path, dict(min_visible=min_visible, drop_invalid=drop_invalid))
+    cpath = cache_path(path)
+    if cache and (data := _read_cache(cpath, key)) is not None:
+        return data
     with open(path) as f:
-        obj = json.load(f)
-    return parse(obj, name=os.path.basename(path).removesuffix(".json"))
+        try:
+            obj = json.load(f)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path} is not valid JSON: {err}") from None
+    data = parse(obj, name=name, min_visible=min_visible, drop_invalid=drop_invalid)
+    if cache:
+        _write_cache(cpath, key, data)
+    return data
 
 
 def to_json_entries(data: KeypointData) -> list[dict]:
@@ -109,19 +300,27 @@ def to_json_entries(data: KeypointData) -> list[dict]:
     entries = []
     for i in range(len(data)):
         entry = {"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist()}
-        if data.kp3d is not None:
-            entry["kp_loc_3d"] = data.kp3d[i].T.tolist()
-        if data.class_mask is not None:
-            entry["class_mask"] = data.class_mask[i].tolist()
-        if data.kp_defined is not None:
-            entry["kp_defined"] = data.kp_defined[i].tolist()
-        if data.intrinsics is not None:
-            entry["K"] = data.intrinsics[i].tolist()
+        for field, key, transpose in (("kp3d", "kp_loc_3d", True), ("class_mask", "class_mask", 0),
+                                      ("kp_defined", "kp_defined", 0), ("intrinsics", "K", 0)):
+            value = getattr(data, field)
+            if value is not None:
+                entry[key] = (value[i].T if transpose else value[i]).tolist()
+        if data.image_path is not None:
+            entry["image_path"] = str(data.image_path[i])
+        if data.class_mask is not None and data.group is not None and data.group_names:
+            entry["p3d_info"] = {"p3d_class": data.group_names[data.group[i]]}
+        elif data.scale is not None or (data.group is not None and data.group_names):
+            entry["h36m_info"] = {}
+            if data.scale is not None:
+                entry["h36m_info"]["scale"] = float(data.scale[i])
+            if data.group is not None and data.group_names:
+                entry["h36m_info"]["action_name"] = data.group_names[data.group[i]]
         entries.append(entry)
     return entries
 
 
 def save(data: KeypointData, path: str) -> None:
-    """Writes ``data`` as a JSON file of the release's format."""
+    """Writes ``data`` as a JSON file of the release's format (groups as ``p3d_info`` classes
+    when there is a class mask, else as ``h36m_info`` actions)."""
     with open(path, "w") as f:
         json.dump({"dataset": data.name, "data": to_json_entries(data)}, f)

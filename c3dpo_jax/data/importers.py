@@ -1,0 +1,267 @@
+"""Users' own keypoints -> the release's JSON format (numpy only; scipy for .mat).
+
+- 3D sequences (``.npz`` with ``X`` (F, 3, K), as in ``shared/data/nrsfm``, or ``.mat``
+  with ``X`` (F, 3, K), (F, K, 3) or (3F, K)): each frame is centred, the sequence is
+  scaled to unit RMS radius, and seen by ``views_per_frame`` random cameras; train and
+  test take different blocks of frames, so test poses are unseen.
+- BVH motion capture: joint positions by forward kinematics, then views as above.
+- COCO-style keypoints (``annotations[i].keypoints`` = [x, y, v] * K, v in {0, 1, 2}):
+  a 2D-only training set (v >= ``min_v`` is visible).
+
+CLI::
+
+  python -m c3dpo_jax.data.importers sequence drink.npz --out_dir data/ --name drink
+  python -m c3dpo_jax.data.importers bvh walk.bvh --out_dir data/ --name walk
+  python -m c3dpo_jax.data.importers coco person_keypoints.json --out data/coco_train.json
+
+Glossary: F frames, K points, V views per frame.
+"""
+
+import argparse
+import json
+import os
+import re
+
+import numpy as np
+from absl import logging
+
+from c3dpo_jax.data import json_dataset
+from c3dpo_jax.data.dataset import KeypointData
+from c3dpo_jax.data.synthetic import _random_rotations, _upright_rotations
+
+
+def load_sequence(path: str, key: str = "X") -> np.ndarray:
+    """A 3D point sequence (F, K, 3) from ``.npz`` or ``.mat``."""
+    if path.endswith(".mat"):
+        import scipy.io
+
+        arrays = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
+    else:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    if key not in arrays:
+        if len(arrays) != 1:
+            raise ValueError(f"{path}: no array {key!r}; it holds {sorted(arrays)} (pass key=)")
+        key = next(iter(arrays))
+    x = np.asarray(arrays[key], np.float64)
+    if x.ndim == 3 and x.shape[1] == 3:
+        return np.swapaxes(x, 1, 2)
+    if x.ndim == 3 and x.shape[2] == 3:
+        return x
+    if x.ndim == 2 and x.shape[0] % 3 == 0:  # classic NRSfM stacking: rows x1, y1, z1, ...
+        return np.swapaxes(x.reshape(-1, 3, x.shape[1]), 1, 2)
+    raise ValueError(f"{path}: array {key!r} has shape {x.shape}; expected (F, 3, K), "
+                     "(F, K, 3) or (3F, K)")
+
+
+def _normalise(x: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centres each frame; divides by the sequence's mean RMS radius (returned)."""
+    x = x - x.mean(1, keepdims=True)
+    scale = float(np.sqrt((x**2).sum(-1).mean(-1)).mean())
+    return x / scale, scale
+
+
+def frame_blocks_split(n_frames: int, test_fraction: float, n_blocks: int, seed: int):
+    """Boolean test mask: ``n_blocks`` contiguous blocks, a ``test_fraction`` of them test."""
+    n_blocks = max(2, min(n_blocks, n_frames))
+    block = np.arange(n_frames) * n_blocks // n_frames
+    n_test = min(max(1, round(test_fraction * n_blocks)), n_blocks - 1)
+    test_blocks = np.random.default_rng(seed).choice(n_blocks, n_test, replace=False)
+    return np.isin(block, test_blocks)
+
+
+def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_visible, rng,
+           name, scale):
+    f, k, _ = x.shape
+    m = f * views_per_frame
+    rots = (_random_rotations(rng, m) if cameras == "uniform"
+            else _upright_rotations(rng, m, max_elevation))
+    kp3d = np.einsum("mij,mnj->mni", rots, np.repeat(x, views_per_frame, 0))
+    vis = (rng.uniform(size=(m, k)) >= occlusion).astype(np.float32)
+    keep = np.argsort(rng.uniform(size=(m, k)), axis=1)[:, :min_visible]
+    np.put_along_axis(vis, keep, 1.0, axis=1)
+    kp = (kp3d[..., :2] + noise * rng.normal(size=(m, k, 2))) * vis[..., None]
+    return KeypointData(kp=kp.astype(np.float32), vis=vis, kp3d=kp3d.astype(np.float32),
+                        scale=np.full(m, scale, np.float32), name=name)
+
+
+def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: str = "upright",
+                        max_elevation: float = 0.5, test_fraction: float = 0.2,
+                        n_blocks: int = 10, occlusion: float = 0.0, noise: float = 0.0,
+                        min_visible: int = 3, normalise: bool = True, seed: int = 0,
+                        name: str = "sequence") -> tuple[KeypointData, KeypointData]:
+    """(train, test) views of a 3D sequence ``x`` (F, K, 3), split by frame blocks.
+
+    ``scale`` of each sample holds the factor that was divided out, so errors times
+    ``scale`` are in the sequence's units. ``noise`` is 2D noise in normalised units.
+    """
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"a sequence must be (F, K, 3), got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("the sequence contains NaN or inf")
+    x, scale = _normalise(x) if normalise else (x - x.mean(1, keepdims=True), 1.0)
+    test = frame_blocks_split(len(x), test_fraction, n_blocks, seed)
+    rng = np.random.default_rng(seed + 1)
+    common = dict(views_per_frame=views_per_frame, cameras=cameras, max_elevation=max_elevation,
+                  occlusion=occlusion, noise=noise, min_visible=min(min_visible, x.shape[1]),
+                  rng=rng, scale=scale)
+    return (_views(x[~test], name=f"{name}_train", **common),
+            _views(x[test], name=f"{name}_test", **common))
+
+
+def parse_bvh(text: str):
+    """BVH -> (joint names, parents, offsets (J, 3), channels per joint, motion (F, C))."""
+    tokens = re.findall(r"[^\s{}]+|[{}]", text)
+    names, parents, offsets, channels, stack = [], [], [], [], []
+    i = 0
+    while i < len(tokens) and tokens[i] != "MOTION":
+        tok = tokens[i]
+        if tok in ("ROOT", "JOINT", "End"):
+            names.append(tokens[i + 1] if tok != "End" else f"{names[stack[-1]]}_end")
+            parents.append(stack[-1] if stack else -1)
+            channels.append([])
+            offsets.append(None)
+            i += 2
+        elif tok == "{":
+            stack.append(len(names) - 1)
+            i += 1
+        elif tok == "}":
+            stack.pop()
+            i += 1
+        elif tok == "OFFSET":
+            offsets[-1] = [float(t) for t in tokens[i + 1 : i + 4]]
+            i += 4
+        elif tok == "CHANNELS":
+            n = int(tokens[i + 1])
+            channels[-1] = tokens[i + 2 : i + 2 + n]
+            i += 2 + n
+        else:
+            i += 1
+    if not names or any(o is None for o in offsets):
+        raise ValueError("not a BVH file: no HIERARCHY with OFFSETs found")
+    m = re.search(r"Frames:\s*(\d+)\s*Frame Time:\s*[\d.eE+-]+\s*(.*)", text, re.S)
+    if m is None:
+        raise ValueError("BVH file has no MOTION section with 'Frames:' and 'Frame Time:'")
+    values = np.array(m.group(2).split(), np.float64)
+    n_ch = sum(len(c) for c in channels)
+    motion = values.reshape(int(m.group(1)), n_ch)
+    return names, parents, np.array(offsets), channels, motion
+
+
+def _axis_rotation(axis: str, degrees: np.ndarray) -> np.ndarray:
+    a = np.deg2rad(degrees)
+    c, s, one, zero = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    rows = {"X": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
+            "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
+            "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]]}[axis]
+    return np.stack([np.stack(r, -1) for r in rows], -2)
+
+
+def bvh_positions(text: str, include_end_sites: bool = False):
+    """Global joint positions (F, J, 3) of a BVH file by forward kinematics, and names."""
+    names, parents, offsets, channels, motion = parse_bvh(text)
+    f = len(motion)
+    pos, rot = np.zeros((f, len(names), 3)), np.zeros((f, len(names), 3, 3))
+    col = 0
+    for j, chans in enumerate(channels):
+        local_t, local_r = np.broadcast_to(offsets[j], (f, 3)).copy(), np.broadcast_to(
+            np.eye(3), (f, 3, 3))
+        for ch in chans:  # rotations compose in the listed order (intrinsic)
+            value = motion[:, col]
+            col += 1
+            if ch.endswith("position"):
+                local_t[:, "XYZ".index(ch[0])] += value
+            else:
+                local_r = local_r @ _axis_rotation(ch[0], value)
+        p = parents[j]
+        if p < 0:
+            pos[:, j], rot[:, j] = local_t, local_r
+        else:
+            pos[:, j] = pos[:, p] + np.einsum("fij,fj->fi", rot[:, p], local_t)
+            rot[:, j] = rot[:, p] @ local_r
+    keep = [j for j, n in enumerate(names) if include_end_sites or not n.endswith("_end")]
+    return pos[:, keep], [names[j] for j in keep]
+
+
+def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id=None,
+                 name: str = "coco") -> KeypointData:
+    """COCO-style keypoint annotations -> 2D-only ``KeypointData`` (no ``kp3d``).
+
+    A point is visible when its flag v >= ``min_v`` (1: labelled, maybe occluded;
+    2: labelled and visible). Annotations with fewer than ``min_visible`` visible
+    points are dropped and counted in the log.
+    """
+    images = {im["id"]: im.get("file_name", "") for im in obj.get("images", [])}
+    anns = [a for a in obj.get("annotations", []) if "keypoints" in a
+            and (category_id is None or a.get("category_id") == category_id)]
+    if not anns:
+        raise ValueError("no annotations with 'keypoints' found")
+    lengths = {len(a["keypoints"]) for a in anns}
+    if len(lengths) != 1 or next(iter(lengths)) % 3:
+        raise ValueError(f"keypoint lists have lengths {sorted(lengths)}; expected one length "
+                         "3K (x, y, v per point) for all annotations")
+    kpv = np.array([a["keypoints"] for a in anns], np.float32).reshape(len(anns), -1, 3)
+    vis = (kpv[..., 2] >= min_v).astype(np.float32)
+    keep = vis.sum(1) >= min_visible
+    if not keep.all():
+        logging.warning("coco: dropped %d of %d annotations with fewer than %d visible points",
+                        int((~keep).sum()), len(anns), min_visible)
+    paths = np.array([images.get(a.get("image_id"), "") for a in anns])[keep]
+    return KeypointData(kp=(kpv[..., :2] * vis[..., None])[keep], vis=vis[keep],
+                        image_path=paths, name=name)
+
+
+def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str):
+    os.makedirs(out_dir, exist_ok=True)
+    paths = [os.path.join(out_dir, f"{name}_{s}.json") for s in ("train", "test")]
+    for data, path in zip((train, test), paths, strict=True):
+        json_dataset.save(data, path)
+    print(f"wrote {paths[0]} ({len(train)}) and {paths[1]} ({len(test)}); "
+          f"K={train.n_keypoints}: --config.model.n_keypoints={train.n_keypoints}")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m c3dpo_jax.data.importers",
+                                     description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="kind", required=True)
+    for kind in ("sequence", "bvh"):
+        p = sub.add_parser(kind)
+        p.add_argument("path")
+        p.add_argument("--out_dir", required=True)
+        p.add_argument("--name", default=None)
+        p.add_argument("--views_per_frame", type=int, default=10)
+        p.add_argument("--cameras", choices=("upright", "uniform"), default="upright")
+        p.add_argument("--max_elevation", type=float, default=0.5)
+        p.add_argument("--test_fraction", type=float, default=0.2)
+        p.add_argument("--n_blocks", type=int, default=10)
+        p.add_argument("--occlusion", type=float, default=0.0)
+        p.add_argument("--noise", type=float, default=0.0)
+        p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("coco")
+    p.add_argument("path")
+    p.add_argument("--out", required=True)
+    p.add_argument("--min_v", type=int, default=1)
+    p.add_argument("--category_id", type=int, default=None)
+    args = parser.parse_args(argv)
+    if args.kind == "coco":
+        with open(args.path) as f:
+            data = coco_to_data(json.load(f), min_v=args.min_v, category_id=args.category_id)
+        json_dataset.save(data, args.out)
+        print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints})")
+        return
+    name = args.name or os.path.splitext(os.path.basename(args.path))[0]
+    if args.kind == "bvh":
+        with open(args.path) as f:
+            x, _ = bvh_positions(f.read())
+    else:
+        x = load_sequence(args.path)
+    train, test = views_from_sequence(
+        x, views_per_frame=args.views_per_frame, cameras=args.cameras,
+        max_elevation=args.max_elevation, test_fraction=args.test_fraction,
+        n_blocks=args.n_blocks, occlusion=args.occlusion, noise=args.noise, seed=args.seed,
+        name=name)
+    _write_pair(train, test, args.out_dir, name)
+
+
+if __name__ == "__main__":
+    main()
