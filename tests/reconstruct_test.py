@@ -1,0 +1,136 @@
+"""reconstruct(): same numbers as the per-example model, one compile per bucket, clear errors."""
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import c3dpo_jax
+from c3dpo_jax import model
+from c3dpo_jax.reconstruct import (
+    C3DPOParams, Reconstruction, _reconstruct_batch, load, reconstruct, save_workdir,
+)
+
+CFG = model.ModelConfig(n_keypoints=7, shape_basis_size=3, n_fully_connected=16, n_layers=1,
+                        canonicalization_n_fully_connected=16, canonicalization_n_layers=1,
+                        argmin_translation=True)
+
+
+@pytest.fixture(scope="module")
+def params():
+    return C3DPOParams(model.init_variables(jax.random.key(3), CFG), CFG)
+
+
+def _inputs(b, n=7, seed=0):
+    rng = np.random.default_rng(seed)
+    kp = rng.normal(size=(b, n, 2)).astype(np.float32) * 50 + 200
+    vis = (rng.uniform(size=(b, n)) > 0.3).astype(np.float32)
+    vis[:, 0] = 1
+    return kp, vis
+
+
+def _direct(params, kp, vis):
+    """Independent path: vmapped forward_eval on the un-padded batch, invisible zeroed."""
+    fn = lambda k, v: model.forward_eval(params.variables, k * v[:, None], v,  # noqa: E731
+                                         jnp.ones_like(v), None, params.config)
+    return jax.vmap(fn)(jnp.asarray(kp), jnp.asarray(vis))
+
+
+def test_batch_matches_the_per_example_model(params):
+    kp, vis = _inputs(5)
+    rec = reconstruct(params, kp, vis)
+    ref = _direct(params, kp, vis)
+    assert isinstance(rec, Reconstruction) and isinstance(rec.shape_3d, np.ndarray)
+    assert rec.shape_3d.shape == (5, 7, 3) and rec.rotation.shape == (5, 3, 3)
+    assert rec.alpha.shape == (5, 3) and rec.kp_reprojected.shape == (5, 7, 2)
+    for ours, theirs in [(rec.shape_3d, "shape_image_coord"), (rec.shape_canonical, "shape_canonical"),
+                         (rec.rotation, "rotation"), (rec.alpha, "alpha"),
+                         (rec.kp_reprojected, "kp_reprojected")]:
+        np.testing.assert_allclose(ours, ref[theirs], rtol=1e-5, atol=1e-4)
+    # Visible points come back as the input (pixel units), as forward_eval's contract says.
+    np.testing.assert_allclose(rec.shape_3d[..., :2][vis > 0], kp[vis > 0], atol=1e-4)
+
+
+def test_one_sample_has_no_batch_axis_and_equals_its_row_in_a_batch(params):
+    kp, vis = _inputs(4)
+    batch = reconstruct(params, kp, vis)
+    one = reconstruct(params, jnp.asarray(kp[2]), vis[2].astype(np.int32))
+    assert one.shape_3d.shape == (7, 3) and one.rotation.shape == (3, 3)
+    np.testing.assert_allclose(one.shape_3d, batch.shape_3d[2], atol=1e-4)
+
+
+def test_invisible_coordinates_do_not_matter(params):
+    kp, vis = _inputs(3)
+    moved = np.where(vis[..., None] > 0, kp, 1e4)
+    np.testing.assert_allclose(reconstruct(params, moved, vis).shape_canonical,
+                               reconstruct(params, kp, vis).shape_canonical, atol=1e-5)
+
+
+def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
+    cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled
+    p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)
+    before = _reconstruct_batch._cache_size()
+    for b in (3, 4, 3, 4):
+        reconstruct(p, *_inputs(b, n=9))
+    assert _reconstruct_batch._cache_size() - before == 1
+    for b in (5, 6, 7, 8):
+        reconstruct(p, *_inputs(b, n=9))
+    assert _reconstruct_batch._cache_size() - before == 2
+
+
+@pytest.mark.parametrize("kp_shape,vis_shape,edit,match", [
+    ((3, 6, 2), (3, 6), None, "expects N = 7"),
+    ((3, 7, 3), (3, 7), None, "expected"),
+    ((2, 3, 7, 2), (3, 7), None, "expected"),
+    ((3, 7, 2), (3, 6), None, "vis has shape"),
+    ((3, 7, 2), (2, 7), None, "batch size"),
+    ((3, 7, 2), (3, 7), "nan", "NaN or inf"),
+    ((3, 7, 2), (3, 7), "vis2", "only 0 and 1"),
+    ((3, 7, 2), (3, 7), "empty", r"sample\(s\) \[1\] have no visible"),
+    ((3, 7, 2), (3, 7), "K", "orthographic"),
+])
+def test_bad_input_raises_a_clear_value_error(params, kp_shape, vis_shape, edit, match):
+    kp, vis = np.ones(kp_shape, np.float32), np.ones(vis_shape, np.float32)
+    K = None
+    if edit == "nan":
+        kp[0, 0, 0] = np.nan
+    elif edit == "vis2":
+        vis[0, 0] = 2
+    elif edit == "empty":
+        vis[1] = 0
+    elif edit == "K":
+        K = np.eye(3)
+    with pytest.raises(ValueError, match=match):
+        reconstruct(params, kp, vis, K)
+
+
+def test_perspective_model_needs_intrinsics():
+    cfg = dataclasses.replace(CFG, projection_type="perspective", argmin_translation=False)
+    p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)
+    kp, vis = _inputs(2)
+    with pytest.raises(ValueError, match="perspective model: pass the intrinsics K"):
+        reconstruct(p, kp, vis)
+    K = np.array([[500.0, 0, 200], [0, 500, 200], [0, 0, 1]], np.float32)
+    rec = reconstruct(p, kp, vis, K)
+    assert np.all(np.isfinite(rec.shape_3d))
+
+
+def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_path):
+    workdir = save_workdir(params, str(tmp_path / "w"))
+    for path in (workdir, os.path.join(workdir, "checkpoints", "0")):
+        loaded = load(path)
+        assert loaded.config == CFG
+        same = jax.tree.map(lambda a, b: np.array_equal(np.asarray(a), np.asarray(b)),
+                            loaded.variables, params.variables)
+        assert all(jax.tree.leaves(same))
+    with pytest.raises(FileNotFoundError, match="neither a workdir"):
+        load(str(tmp_path))
+
+
+def test_package_exports_the_public_api():
+    assert c3dpo_jax.load is load and c3dpo_jax.reconstruct is reconstruct
+    for name in ("from_official", "Reconstruction", "ModelConfig", "C3DPOParams"):
+        assert hasattr(c3dpo_jax, name)
