@@ -86,7 +86,7 @@ def _stream(response, out, total: int | None, progress: bool, desc: str) -> str:
 
 
 def fetch(filename: str, *, directory: str | None = None, base_url: str = BASE_URL,
-          md5: str | None = "release", progress: bool = True, timeout: float = 60.0) -> str:
+          md5: str | None = "release", progress: bool = True, timeout: float | int = 60.0) -> str:
     """Returns the local path of ``filename``, downloading it first if it is absent.
 
     Args:

@@ -150,7 +150,7 @@ def _joint_exclusions(sphere_bone: np.ndarray) -> np.ndarray:
 
 
 def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
-               cameras: str = "upright", max_elevation: float = 0.5, noise: float = 0.0,
+               cameras: str = "upright", max_elevation: float | int = 0.5, noise: float | int = 0.0,
                self_occlusion: bool = True, seed: int = 0) -> KeypointData:
     """``n_poses * views_per_pose`` views of ``n_poses`` random people and poses.
 
@@ -191,8 +191,8 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
 
 
 def make_splits(n_train_poses: int = 300, n_test_poses: int = 50, views_per_pose: int = 30,
-                dense_points: int = 0, cameras: str = "upright", max_elevation: float = 0.5,
-                noise: float = 0.0, self_occlusion: bool = True, seed: int = 0
+                dense_points: int = 0, cameras: str = "upright", max_elevation: float | int = 0.5,
+                noise: float | int = 0.0, self_occlusion: bool = True, seed: int = 0
                 ) -> tuple[KeypointData, KeypointData]:
     """Train and test splits with different people and poses; reproducible from ``seed``."""
     common = dict(views_per_pose=views_per_pose, dense_points=dense_points, cameras=cameras,

@@ -86,8 +86,8 @@ def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_
 
 
 def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: str = "upright",
-                        max_elevation: float = 0.5, test_fraction: float = 0.2,
-                        n_blocks: int = 10, occlusion: float = 0.0, noise: float = 0.0,
+                        max_elevation: float | int = 0.5, test_fraction: float | int = 0.2,
+                        n_blocks: int = 10, occlusion: float | int = 0.0, noise: float | int = 0.0,
                         min_visible: int = 3, normalise: bool = True, seed: int = 0,
                         name: str = "sequence") -> tuple[KeypointData, KeypointData]:
     """(train, test) views of a 3D sequence ``x`` (F, K, 3), split by frame blocks.

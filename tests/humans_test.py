@@ -1,0 +1,48 @@
+"""Synthetic humans: skeleton order, reproducibility, occlusion, views, proportions."""
+
+import numpy as np
+
+from c3dpo_jax.data import humans
+
+H36M_SKELETON = [[10, 9], [9, 8], [8, 14], [14, 15], [15, 16], [8, 11], [11, 12], [12, 13],
+                 [8, 7], [7, 0], [1, 0], [1, 2], [2, 3], [0, 4], [4, 5], [5, 6]]
+
+
+def test_kinematic_tree_is_the_h36m_skeleton():
+    bones = {tuple(sorted((j, p))) for j, p in enumerate(humans.PARENTS) if p >= 0}
+    assert bones == {tuple(sorted(b)) for b in H36M_SKELETON}
+
+
+def test_splits_are_reproducible_and_sized():
+    a, _ = humans.make_splits(3, 2, views_per_pose=4, dense_points=20, seed=5)
+    b, test = humans.make_splits(3, 2, views_per_pose=4, dense_points=20, seed=5)
+    np.testing.assert_array_equal(a.kp, b.kp)
+    assert a.kp.shape == (12, 37, 2) and a.kp3d.shape == (12, 37, 3) and len(test) == 8
+    c, _ = humans.make_splits(3, 2, views_per_pose=4, dense_points=20, seed=6)
+    assert not np.allclose(a.kp3d, c.kp3d)
+
+
+def test_views_of_one_pose_are_rotations_of_one_shape_and_bodies_are_human_sized():
+    data = humans.make_split(5, views_per_pose=6, self_occlusion=False, seed=0)
+    x = data.kp3d.reshape(5, 6, 17, 3)
+    dist = np.linalg.norm(x[:, :, :, None] - x[:, :, None], axis=-1)
+    np.testing.assert_allclose(dist, np.broadcast_to(dist[:, :1], dist.shape), atol=1e-4)
+    thigh = dist[:, 0, 1, 2]
+    assert np.all((thigh > 0.3) & (thigh < 0.6))
+    assert data.vis.min() == 1.0  # no occlusion asked for
+    np.testing.assert_allclose(data.kp, data.kp3d[..., :2], atol=1e-6)
+
+
+def test_self_occlusion_hides_points_behind_the_body():
+    data = humans.make_split(20, views_per_pose=8, dense_points=100, seed=1)
+    joints, surface = data.vis[:, :17].mean(), data.vis[:, 17:].mean()
+    assert 0.6 < joints < 0.97  # most joints are seen, some are hidden
+    assert 0.3 < surface < 0.7  # about the back half of every capsule is hidden
+    assert np.all(data.kp[data.vis == 0] == 0)  # invisible points are zeroed
+
+
+def test_a_point_behind_a_sphere_is_hidden_and_one_in_front_is_not():
+    centres = np.zeros((1, 1, 3))
+    points = np.array([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.5, 0.0, 1.0]]])
+    vis = humans.occlusion_visibility(points, centres, np.array([0.2]), np.zeros((3, 1), bool))
+    assert vis.tolist() == [[0.0, 1.0, 1.0]]  # the camera looks along +z
