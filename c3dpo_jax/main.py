@@ -26,6 +26,17 @@ class _QuietLibraries(py_logging.Filter):
         return record.levelno >= py_logging.WARNING or "/orbax/" not in record.pathname
 
 
+def _write_figures(config, workdir):
+    """A few pictures into workdir/figures; a plotting failure never fails the run."""
+    try:
+        from c3dpo_jax import visualise
+        from c3dpo_jax.data import load_splits
+
+        visualise.write_run_figures(workdir, load_splits(config.data)[1])
+    except Exception as err:  # noqa: BLE001 (pictures are optional)
+        logging.warning("could not write figures to %s/figures: %r", workdir, err)
+
+
 def main(argv):
     del argv
     logging.get_absl_handler().addFilter(_QuietLibraries())
@@ -33,6 +44,7 @@ def main(argv):
     logging.info("config:\n%s", config)
     if _MODE.value == "train":
         results = train.train_and_evaluate(config, _WORKDIR.value)
+        _write_figures(config, _WORKDIR.value)
     else:
         results = train.evaluate_checkpoint(config, _WORKDIR.value)
     rows = {"C3DPO": results["final"], **results.get("baselines", {})}
