@@ -1,0 +1,114 @@
+"""Importers: 3D sequences (.npz/.mat), BVH, COCO -> JSON; a round trip that trains."""
+
+import json
+
+import numpy as np
+import pytest
+import scipy.io
+
+from c3dpo_jax import train
+from c3dpo_jax.data import importers, json_dataset
+from configs import default
+
+TINY_BVH = """HIERARCHY
+ROOT hip
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT knee
+  {
+    OFFSET 0 -10 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 -8 0
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.0333
+0 0 0 0 0 0 0 0 0
+1 2 3 0 0 0 90 0 0
+"""
+
+
+def _sequence(f=60, k=9, seed=0):
+    rng = np.random.default_rng(seed)
+    base, mode = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
+    return (base + np.sin(np.arange(f) / 5)[:, None, None] * 0.3 * mode) * 40.0
+
+
+def test_load_sequence_reads_npz_and_mat_layouts(tmp_path):
+    x = _sequence()
+    np.savez(tmp_path / "s.npz", X=np.swapaxes(x, 1, 2).astype(np.float32))  # (F, 3, K)
+    np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "s.npz")), x, rtol=1e-5)
+    scipy.io.savemat(tmp_path / "s.mat", {"W": np.swapaxes(x, 1, 2).reshape(-1, 9)})
+    np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "s.mat")), x)
+    np.savez(tmp_path / "bad.npz", X=np.zeros((4, 5)))
+    with pytest.raises(ValueError, match=r"has shape \(4, 5\); expected"):
+        importers.load_sequence(str(tmp_path / "bad.npz"))
+
+
+def test_views_split_by_frame_blocks_and_normalise_scale():
+    x = _sequence(f=50)
+    train_d, test_d = importers.views_from_sequence(x, views_per_frame=3, test_fraction=0.2,
+                                                    n_blocks=5, occlusion=0.3, seed=1)
+    assert len(train_d) == 40 * 3 and len(test_d) == 10 * 3
+    test_mask = importers.frame_blocks_split(50, 0.2, 5, 1)
+    assert np.ptp(np.flatnonzero(test_mask)) == 9  # one contiguous block of frames
+    radius = np.sqrt((train_d.kp3d**2).sum(-1).mean(-1))
+    assert 0.5 < radius.mean() < 1.5 and np.allclose(train_d.scale, train_d.scale[0])
+    assert train_d.vis.sum(1).min() >= 3 and 0.5 < train_d.vis.mean() < 0.9
+    np.testing.assert_allclose(train_d.kp[train_d.vis == 1],
+                               train_d.kp3d[..., :2][train_d.vis == 1], atol=1e-6)
+
+
+def test_bvh_forward_kinematics():
+    pos, names = importers.bvh_positions(TINY_BVH, include_end_sites=True)
+    assert names == ["hip", "knee", "knee_end"] and pos.shape == (2, 3, 3)
+    np.testing.assert_allclose(pos[0], [[0, 0, 0], [0, -10, 0], [0, -18, 0]], atol=1e-9)
+    # Frame 1: root moved by (1, 2, 3); knee turned 90 degrees about z: the shin points +x.
+    np.testing.assert_allclose(pos[1], [[1, 2, 3], [1, -8, 3], [9, -8, 3]], atol=1e-9)
+    with pytest.raises(ValueError, match="no HIERARCHY"):
+        importers.parse_bvh("MOTION")
+
+
+def test_coco_annotations_become_a_2d_training_set(caplog):
+    obj = {"images": [{"id": 7, "file_name": "a.jpg"}],
+           "annotations": [{"image_id": 7, "keypoints": [10, 20, 2, 30, 40, 1, 0, 0, 0]},
+                           {"image_id": 7, "keypoints": [1, 2, 2, 0, 0, 0, 0, 0, 0]}]}
+    data = importers.coco_to_data(obj)
+    assert len(data) == 1 and data.kp3d is None and list(data.image_path) == ["a.jpg"]
+    np.testing.assert_array_equal(data.vis, [[1, 1, 0]])
+    np.testing.assert_array_equal(data.kp[0], [[10, 20], [30, 40], [0, 0]])
+    assert importers.coco_to_data(obj, min_v=2, min_visible=1).vis.tolist() == [[1, 0, 0]] * 2
+    with pytest.raises(ValueError, match="expected one length 3K"):
+        importers.coco_to_data({"annotations": [{"keypoints": [1, 2]}]})
+
+
+def test_cli_writes_json_for_each_kind(tmp_path, capsys):
+    (tmp_path / "walk.bvh").write_text(TINY_BVH * 1)
+    importers.main(["bvh", str(tmp_path / "walk.bvh"), "--out_dir", str(tmp_path),
+                    "--views_per_frame", "4", "--n_blocks", "2", "--test_fraction", "0.5"])
+    assert json_dataset.load(str(tmp_path / "walk_train.json")).kp.shape == (4, 2, 2)
+    (tmp_path / "c.json").write_text(json.dumps(
+        {"annotations": [{"keypoints": [1, 2, 2, 3, 4, 2]}]}))
+    importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])
+    assert json_dataset.load(str(tmp_path / "o.json")).n_keypoints == 2
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_sequence_round_trip_trains(tmp_path):
+    np.savez(tmp_path / "seq.npz", X=np.swapaxes(_sequence(f=40, k=8), 1, 2))
+    importers.main(["sequence", str(tmp_path / "seq.npz"), "--out_dir", str(tmp_path),
+                    "--views_per_frame", "8", "--occlusion", "0.1", "--noise", "0.01"])
+    c = default.apply_variants(default.get_config(), "smoke")
+    c.data.train_path = str(tmp_path / "seq_train.json")
+    c.data.test_path = str(tmp_path / "seq_test.json")
+    c.model.n_keypoints, c.model.shape_basis_size = 8, 3
+    c.train.progress_bar = False
+    c.train.ckpt_every = c.train.log_every = 20
+    results = train.train_and_evaluate(c, str(tmp_path / "run"))
+    assert results["final"]["step"] == 20 and np.isfinite(results["final"]["mpjpe"])
+    assert (tmp_path / "seq_train.c3dpo_cache.npz").exists()
