@@ -36,14 +36,14 @@ _RADII = np.array([0, 0.1, 0.08, 0.055, 0.1, 0.08, 0.055, 0.12, 0.14, 0.05, 0.1,
 _LIMITS = np.zeros((17, 3, 2))
 _LIMITS[0] = [[-0.25, 0.35], [0, 0], [-0.15, 0.15]]  # whole-body lean
 for _j, _s in ((1, -1), (4, 1)):  # hips: leg raised forward (-x) or back, spread out
-    _LIMITS[_j] = [[-1.7, 0.5], [-0.4, 0.4], sorted((_s * -0.15, _s * 0.7))]
+    _LIMITS[_j] = [[-1.4, 0.4], [-0.4, 0.4], sorted((_s * -0.15, _s * 0.5))]
 for _j in (2, 5):  # knees bend backwards only
-    _LIMITS[_j] = [[0.0, 2.2], [0, 0], [0, 0]]
+    _LIMITS[_j] = [[0.0, 1.8], [0, 0], [0, 0]]
 _LIMITS[7] = [[-0.3, 0.8], [-0.5, 0.5], [-0.3, 0.3]]  # lower spine
 _LIMITS[8] = [[-0.2, 0.4], [-0.4, 0.4], [-0.2, 0.2]]  # thorax
 _LIMITS[9] = [[-0.4, 0.6], [-0.8, 0.8], [-0.3, 0.3]]  # neck
 for _j, _s in ((11, 1), (14, -1)):  # shoulders: raise forward (-x), sideways (+-z)
-    _LIMITS[_j] = [[-2.8, 0.8], [-0.8, 0.8], sorted((_s * -0.2, _s * 2.6))]
+    _LIMITS[_j] = [[-2.4, 0.6], [-0.8, 0.8], sorted((_s * -0.2, _s * 2.0))]
 for _j in (12, 15):  # elbows: forearm forwards
     _LIMITS[_j] = [[-2.4, 0.0], [-0.5, 0.5], [0, 0]]
 
@@ -160,7 +160,8 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
     rng = np.random.default_rng(seed)
     offsets = _proportions(rng, n_poses)
     lo, hi = _LIMITS[..., 0], _LIMITS[..., 1]
-    angles = lo + (hi - lo) * rng.uniform(size=(n_poses, 17, 3))
+    # Triangular between the limits: extreme angles are rarer than middle ones.
+    angles = lo + (hi - lo) * rng.uniform(size=(2, n_poses, 17, 3)).mean(0)
     pos, frames = forward_kinematics(offsets, angles)
     points, normals = pos, np.zeros_like(pos)
     if dense_points:
