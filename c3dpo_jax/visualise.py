@@ -155,7 +155,7 @@ def plot_training_curves(metrics_path: str):
     return fig
 
 
-def _save(fig, path: str) -> str:
+def save_figure(fig, path: str) -> str:
     fig.savefig(path, dpi=90)
     _plt().close(fig)
     return path
@@ -182,7 +182,7 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton_name
     paths = []
     metrics = os.path.join(workdir, "metrics.jsonl")
     if os.path.exists(metrics):
-        paths.append(_save(plot_training_curves(metrics), os.path.join(out_dir, "training_curves.png")))
+        paths.append(save_figure(plot_training_curves(metrics), os.path.join(out_dir, "training_curves.png")))
     if data is None:
         return paths
     params = load(workdir)
@@ -195,7 +195,7 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton_name
         gt = None if data.kp3d is None else data.kp3d[i]
         fig = plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=data.kp[i], vis=data.vis[i],
                                      title=f"sample {i}")
-        paths.append(_save(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
+        paths.append(save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
     paths.append(save_rotation_gif(rec.shape_3d[0], os.path.join(out_dir, "rotation_0.gif"), edges))
     logging.info("wrote %d figures to %s", len(paths), out_dir)
     return paths

@@ -69,7 +69,7 @@ def test_reconstruction_plot_with_ground_truth_and_input_panel(tmp_path):
     fig = visualise.plot_reconstruction_3d(shape, gt=shape * [1, 1, -1], edges=visualise.SKELETONS["h36m"],
                                            kp=shape[:, :2], vis=np.ones(17), views=((10, 0), (10, 90)))
     assert len(fig.axes) == 3
-    path = visualise._save(fig, str(tmp_path / "r.png"))
+    path = visualise.save_figure(fig, str(tmp_path / "r.png"))
     _assert_picture(path)
 
 

@@ -1,0 +1,112 @@
+"""Command line: 2D keypoints in a file -> 3D reconstructions out.
+
+  python -m c3dpo_jax.predict --workdir=runs/synthetic --input=poses.json \\
+      --output=out.npz [--figures=DIR]
+
+Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
+``kp_vis``, or ``{"dataset", "data"}``), or COCO-style keypoint annotations
+(``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v > 0;
+annotations with no visible point are skipped with a warning).
+Output: ``.npz`` (arrays ``shape_3d (M, N, 3)``, ``shape_canonical``, ``rotation``,
+``alpha``, ``kp_reprojected``, ``index`` (M,) = position in the input) or ``.json``
+(a list with one dict of nested lists per reconstructed sample).
+"""
+
+import json
+import os
+
+import numpy as np
+from absl import app, flags, logging
+
+from c3dpo_jax.reconstruct import Reconstruction, load, reconstruct
+
+_WORKDIR = flags.DEFINE_string("workdir", None, "Trained workdir (or WORKDIR/checkpoints/<step>).")
+_INPUT = flags.DEFINE_string("input", None, "Keypoints: release JSON or COCO annotations JSON.")
+_OUTPUT = flags.DEFINE_string("output", None, "Where to write reconstructions (.json or .npz).")
+_FIGURES = flags.DEFINE_string("figures", None, "Optional directory for a few pictures.")
+_N_FIGURES = flags.DEFINE_integer("n_figures", 3, "How many samples to draw with --figures.")
+_SKELETON = flags.DEFINE_string("skeleton", None, "Skeleton for the pictures (e.g. h36m).")
+
+
+def read_coco(obj: dict) -> dict[str, np.ndarray]:
+    """COCO keypoint annotations -> ``kp (M, N, 2)``, ``vis (M, N)``, ``index (M,)``."""
+    anns = obj["annotations"]
+    if not anns:
+        raise ValueError("the COCO file has no annotations")
+    kps, viss, index = [], [], []
+    for i, ann in enumerate(anns):
+        flat = np.asarray(ann.get("keypoints", []), np.float32)
+        if flat.size == 0 or flat.size % 3:
+            raise ValueError(f"annotation {i}: 'keypoints' must be [x, y, v] * N")
+        triples = flat.reshape(-1, 3)
+        if kps and len(triples) != kps[0].shape[0]:
+            raise ValueError(f"annotation {i} has {len(triples)} keypoints, earlier ones "
+                             f"{kps[0].shape[0]}")
+        vis = (triples[:, 2] > 0).astype(np.float32)
+        if not vis.any():
+            logging.warning("annotation %d (id %s) has no visible keypoint: skipped", i, ann.get("id"))
+            continue
+        kps.append(triples[:, :2] * vis[:, None])
+        viss.append(vis)
+        index.append(i)
+    if not kps:
+        raise ValueError("no COCO annotation has a visible keypoint")
+    return {"kp": np.stack(kps), "vis": np.stack(viss), "index": np.asarray(index)}
+
+
+def read_input(path: str) -> dict[str, np.ndarray]:
+    """Either input format -> ``kp``, ``vis``, ``index`` (+ ``class_mask``, ``K``, ``kp3d``)."""
+    with open(path) as f:
+        obj = json.load(f)
+    if isinstance(obj, dict) and "annotations" in obj:
+        return read_coco(obj)
+    from c3dpo_jax.data import json_dataset
+
+    data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"))
+    out = {"kp": data.kp, "vis": data.vis, "index": np.arange(len(data))}
+    for name, value in (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d)):
+        if value is not None:
+            out[name] = value
+    return out
+
+
+def write_output(rec: Reconstruction, index: np.ndarray, path: str) -> None:
+    arrays = dict(rec._asdict(), index=index)
+    if path.endswith(".npz"):
+        np.savez(path, **arrays)
+    elif path.endswith(".json"):
+        rows = [{k: v[i].tolist() for k, v in arrays.items()} for i in range(len(index))]
+        with open(path, "w") as f:
+            json.dump(rows, f)
+    else:
+        raise ValueError(f"--output must end in .json or .npz, got {path!r}")
+
+
+def _figures(rec, inputs, out_dir: str, n: int, skeleton_name: str | None) -> None:
+    from c3dpo_jax import visualise
+
+    os.makedirs(out_dir, exist_ok=True)
+    edges = visualise.skeleton(skeleton_name, inputs["kp"].shape[1])
+    for i in range(min(n, len(rec.shape_3d))):
+        gt = inputs["kp3d"][i] if "kp3d" in inputs else None
+        fig = visualise.plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=inputs["kp"][i],
+                                               vis=inputs["vis"][i], title=f"sample {inputs['index'][i]}")
+        visualise.save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png"))
+
+
+def main(argv):
+    del argv
+    params = load(_WORKDIR.value)
+    inputs = read_input(_INPUT.value)
+    perspective = params.config.projection_type == "perspective"
+    rec = reconstruct(params, inputs["kp"], inputs["vis"], K=inputs.get("K") if perspective else None,
+                      class_mask=inputs.get("class_mask"))
+    write_output(rec, inputs["index"], _OUTPUT.value)
+    logging.info("wrote %d reconstructions to %s", len(inputs["index"]), _OUTPUT.value)
+    if _FIGURES.value:
+        _figures(rec, inputs, _FIGURES.value, _N_FIGURES.value, _SKELETON.value)
+
+
+if __name__ == "__main__":
+    flags.mark_flags_as_required(["workdir", "input", "output"])
+    app.run(main)

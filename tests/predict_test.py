@@ -1,0 +1,79 @@
+"""The predict CLI: release JSON and COCO annotations in, the same numbers as reconstruct() out."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from c3dpo_jax import model, predict
+from c3dpo_jax.data import synthetic
+from c3dpo_jax.reconstruct import C3DPOParams, reconstruct, save_workdir
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CFG = model.ModelConfig(n_keypoints=17, shape_basis_size=3, n_fully_connected=16, n_layers=1,
+                        canonicalization_n_fully_connected=16, canonicalization_n_layers=1)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("predict")
+    params = C3DPOParams(model.init_variables(jax.random.key(0), CFG), CFG)
+    workdir = save_workdir(params, str(root / "run"))
+    data = synthetic.make_split(5, n_keypoints=17, n_modes=2, deformation=0.3, occlusion=0.2,
+                                noise=0.0, perspective=False, shape_seed=0, seed=1)
+    return root, params, workdir, data
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "c3dpo_jax.predict", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_release_json_in_npz_out_with_figures(setup):
+    root, params, workdir, data = setup
+    entries = [{"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist(),
+                "kp_loc_3d": data.kp3d[i].T.tolist()} for i in range(len(data))]
+    path = root / "poses.json"
+    path.write_text(json.dumps(entries))
+    out, figs = str(root / "out.npz"), str(root / "figs")
+    proc = _run(f"--workdir={workdir}", f"--input={path}", f"--output={out}", f"--figures={figs}",
+                "--n_figures=2")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = np.load(out)
+    want = reconstruct(params, data.kp, data.vis)
+    np.testing.assert_allclose(got["shape_3d"], want.shape_3d, atol=1e-4)
+    np.testing.assert_allclose(got["rotation"], want.rotation, atol=1e-5)
+    assert got["index"].tolist() == list(range(5))
+    assert sorted(os.listdir(figs)) == ["reconstruction_0.png", "reconstruction_1.png"]
+
+
+def test_coco_annotations_in_json_out_skipping_empty_ones(setup):
+    root, params, workdir, data = setup
+    anns = []
+    for i in range(3):
+        v = np.where(data.vis[i] > 0, 2, 0)
+        anns.append({"id": 10 + i, "keypoints": np.column_stack([data.kp[i], v]).ravel().tolist()})
+    anns.insert(1, {"id": 99, "keypoints": [0, 0, 0] * 17})
+    path = root / "coco.json"
+    path.write_text(json.dumps({"annotations": anns}))
+    out = str(root / "out.json")
+    proc = _run(f"--workdir={workdir}", f"--input={path}", f"--output={out}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "no visible keypoint: skipped" in proc.stderr
+    with open(out) as f:
+        rows = json.load(f)
+    assert [r["index"] for r in rows] == [0, 2, 3]
+    want = reconstruct(params, data.kp[:3], data.vis[:3])
+    np.testing.assert_allclose([r["shape_3d"] for r in rows], want.shape_3d, atol=1e-4)
+
+
+def test_coco_reader_rejects_malformed_keypoints():
+    with pytest.raises(ValueError, match=r"\[x, y, v\] \* N"):
+        predict.read_coco({"annotations": [{"keypoints": [1, 2]}]})
+    with pytest.raises(ValueError, match="has 1 keypoints, earlier ones 2"):
+        predict.read_coco({"annotations": [{"keypoints": [1, 2, 1, 3, 4, 1]},
+                                           {"keypoints": [1, 2, 1]}]})
