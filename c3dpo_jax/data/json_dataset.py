@@ -30,7 +30,7 @@ from absl import logging
 
 from c3dpo_jax.data.dataset import KeypointData
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 _MAX_LISTED = 5
 _OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
 
@@ -164,8 +164,9 @@ def _info_fields(entries) -> dict:
         out["image_path"] = np.array([str(e["image_path"]) for e in entries])
     if all(isinstance(e.get("h36m_info"), dict) for e in entries):
         out["scale"] = np.array([e["h36m_info"].get("scale", 1.0) for e in entries], np.float32)
-        out["group"], out["group_names"] = _groups(
-            [str(e["h36m_info"].get("action_name", "")) for e in entries])
+        if any("action_name" in e["h36m_info"] for e in entries):
+            out["group"], out["group_names"] = _groups(
+                [str(e["h36m_info"].get("action_name", "")) for e in entries])
     if all(isinstance(e.get("p3d_info"), dict) for e in entries):
         out["group"], out["group_names"] = _groups(
             [str(e["p3d_info"].get("p3d_class", "")) for e in entries])
