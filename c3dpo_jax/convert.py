@@ -93,7 +93,8 @@ def _check_keys(sd: dict, cfg: ModelConfig) -> None:
         raise ValueError(f"unexpected state_dict entries {extra[:10]}")
     n_phi = len({k.split(".")[1] for k in sd if k.startswith("phi.")}) - 1
     if n_phi != cfg.n_layers:
-        raise ValueError(f"state_dict has {n_phi} Phi blocks but the config says n_layers={cfg.n_layers}")
+        raise ValueError(f"state_dict has {n_phi} Phi blocks but the config says "
+                         f"n_layers={cfg.n_layers}")
 
 
 def from_official(state_dict: dict[str, np.ndarray], config: dict[str, Any]) -> C3DPOParams:
@@ -122,7 +123,8 @@ def from_official(state_dict: dict[str, np.ndarray], config: dict[str, Any]) -> 
     want = jax.tree.map(lambda a: a.shape, expected)
     if got != want:
         raise ValueError("converted parameters do not match the model's layout: "
-                         f"{jax.tree_util.tree_structure(got)} vs {jax.tree_util.tree_structure(want)}")
+                         f"{jax.tree_util.tree_structure(got)} vs "
+                         f"{jax.tree_util.tree_structure(want)}")
     return C3DPOParams(variables=jax.tree.map(np.asarray, variables), config=cfg)
 
 

@@ -20,12 +20,17 @@ from absl import app, flags, logging
 
 from c3dpo_jax.reconstruct import Reconstruction, load, reconstruct
 
-_WORKDIR = flags.DEFINE_string("workdir", None, "Trained workdir (or WORKDIR/checkpoints/<step>).")
-_INPUT = flags.DEFINE_string("input", None, "Keypoints: release JSON or COCO annotations JSON.")
-_OUTPUT = flags.DEFINE_string("output", None, "Where to write reconstructions (.json or .npz).")
-_FIGURES = flags.DEFINE_string("figures", None, "Optional directory for a few pictures.")
-_N_FIGURES = flags.DEFINE_integer("n_figures", 3, "How many samples to draw with --figures.")
-_SKELETON = flags.DEFINE_string("skeleton", None, "Skeleton for the pictures (e.g. h36m).")
+
+def _define_flags() -> dict:
+    """Defined only when run as a script, so that importing never clashes with main's flags."""
+    return {
+        "workdir": flags.DEFINE_string("workdir", None, "Trained workdir or its step dir."),
+        "input_path": flags.DEFINE_string("input", None, "Release JSON or COCO annotations."),
+        "output": flags.DEFINE_string("output", None, "Reconstructions file (.json/.npz)."),
+        "figures": flags.DEFINE_string("figures", None, "Optional directory for a few pictures."),
+        "n_figures": flags.DEFINE_integer("n_figures", 3, "Samples to draw with --figures."),
+        "skeleton": flags.DEFINE_string("skeleton", None, "Skeleton for the pictures (e.g. h36m)."),
+    }
 
 
 def read_coco(obj: dict) -> dict[str, np.ndarray]:
@@ -44,7 +49,8 @@ def read_coco(obj: dict) -> dict[str, np.ndarray]:
                              f"{kps[0].shape[0]}")
         vis = (triples[:, 2] > 0).astype(np.float32)
         if not vis.any():
-            logging.warning("annotation %d (id %s) has no visible keypoint: skipped", i, ann.get("id"))
+            logging.warning("annotation %d (id %s) has no visible keypoint: skipped",
+                            i, ann.get("id"))
             continue
         kps.append(triples[:, :2] * vis[:, None])
         viss.append(vis)
@@ -64,7 +70,8 @@ def read_input(path: str) -> dict[str, np.ndarray]:
 
     data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"))
     out = {"kp": data.kp, "vis": data.vis, "index": np.arange(len(data))}
-    for name, value in (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d)):
+    optional = (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d))
+    for name, value in optional:
         if value is not None:
             out[name] = value
     return out
@@ -89,24 +96,33 @@ def _figures(rec, inputs, out_dir: str, n: int, skeleton_name: str | None) -> No
     edges = visualise.skeleton(skeleton_name, inputs["kp"].shape[1])
     for i in range(min(n, len(rec.shape_3d))):
         gt = inputs["kp3d"][i] if "kp3d" in inputs else None
-        fig = visualise.plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=inputs["kp"][i],
-                                               vis=inputs["vis"][i], title=f"sample {inputs['index'][i]}")
+        fig = visualise.plot_reconstruction_3d(
+            rec.shape_3d[i], gt, edges, kp=inputs["kp"][i], vis=inputs["vis"][i],
+            title=f"sample {inputs['index'][i]}")
         visualise.save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png"))
 
 
-def main(argv):
-    del argv
-    params = load(_WORKDIR.value)
-    inputs = read_input(_INPUT.value)
+def run(workdir: str, input_path: str, output: str, figures: str | None = None,
+        n_figures: int = 3, skeleton: str | None = None) -> Reconstruction:
+    """What the command line does; returns the reconstructions it wrote."""
+    params = load(workdir)
+    inputs = read_input(input_path)
     perspective = params.config.projection_type == "perspective"
-    rec = reconstruct(params, inputs["kp"], inputs["vis"], K=inputs.get("K") if perspective else None,
-                      class_mask=inputs.get("class_mask"))
-    write_output(rec, inputs["index"], _OUTPUT.value)
-    logging.info("wrote %d reconstructions to %s", len(inputs["index"]), _OUTPUT.value)
-    if _FIGURES.value:
-        _figures(rec, inputs, _FIGURES.value, _N_FIGURES.value, _SKELETON.value)
+    K = inputs.get("K") if perspective else None
+    rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"))
+    write_output(rec, inputs["index"], output)
+    logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
+    if figures:
+        _figures(rec, inputs, figures, n_figures, skeleton)
+    return rec
 
 
 if __name__ == "__main__":
+    _FLAGS = _define_flags()
     flags.mark_flags_as_required(["workdir", "input", "output"])
-    app.run(main)
+
+    def _main(argv):
+        del argv
+        run(**{name: holder.value for name, holder in _FLAGS.items()})
+
+    app.run(_main)

@@ -148,11 +148,12 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     if empty.size:
         raise ValueError(f"sample(s) {empty[:10].tolist()} have no visible keypoint")
     if class_mask is not None:
-        class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), np.ndim(class_mask) == 1),
-                                     vis.shape)
+        one = np.ndim(class_mask) == 1
+        class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), one), vis.shape)
     if cfg.projection_type == "perspective":
         if K is None:
-            raise ValueError("this is a perspective model: pass the intrinsics K, (3, 3) or (B, 3, 3)")
+            raise ValueError(
+                "this is a perspective model: pass the intrinsics K, (3, 3) or (B, 3, 3)")
         K = np.broadcast_to(_as_batch("K", K, (3, 3), np.ndim(K) == 2), (*vis.shape[:1], 3, 3))
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")

@@ -182,14 +182,16 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton_name
     paths = []
     metrics = os.path.join(workdir, "metrics.jsonl")
     if os.path.exists(metrics):
-        paths.append(save_figure(plot_training_curves(metrics), os.path.join(out_dir, "training_curves.png")))
+        curves = plot_training_curves(metrics)
+        paths.append(save_figure(curves, os.path.join(out_dir, "training_curves.png")))
     if data is None:
         return paths
     params = load(workdir)
     n = min(n_samples, len(data))
     inputs = data.model_inputs()
+    perspective = params.config.projection_type == "perspective"
     rec = reconstruct(params, data.kp[:n], data.vis[:n], class_mask=inputs["class_mask"][:n],
-                      K=data.intrinsics[:n] if params.config.projection_type == "perspective" else None)
+                      K=data.intrinsics[:n] if perspective else None)
     edges = skeleton(skeleton_name or data.name, data.n_keypoints)
     for i in range(n):
         gt = None if data.kp3d is None else data.kp3d[i]

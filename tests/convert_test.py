@@ -39,14 +39,16 @@ def _t(a):
 @pytest.fixture(scope="module")
 def phi_outputs(fixture, converted):
     kp, vis = _t(fixture["kp_loc"]), fixture["kp_vis"]
-    fn = lambda k, v: model.forward_eval(converted.variables, k, v, jnp.ones(17), None,  # noqa: E731
-                                         converted.config)
+    def fn(k, v):
+        return model.forward_eval(converted.variables, k, v, jnp.ones(17), None, converted.config)
+
     return {k: np.asarray(v) for k, v in jax.vmap(fn)(kp, vis).items()}
 
 
 def test_release_options_map_to_model_config(fixture, converted):
     cfg = converted.config
-    assert (cfg.n_keypoints, cfg.shape_basis_size, cfg.n_fully_connected, cfg.n_layers) == (17, 10, 128, 2)
+    sizes = (cfg.n_keypoints, cfg.shape_basis_size, cfg.n_fully_connected, cfg.n_layers)
+    assert sizes == (17, 10, 128, 2)
     assert (cfg.canonicalization_n_layers, cfg.canonicalization_n_fully_connected) == (2, 128)
     assert cfg.canonicalization and not cfg.argmin_translation
 
@@ -112,7 +114,8 @@ def test_missing_torch_gives_a_clear_error(monkeypatch, tmp_path):
         convert.load_official_pth(str(tmp_path / "x.pth"), {})
 
 
-def test_converted_model_saved_as_workdir_loads_and_evaluates_from_the_cli(fixture, converted, tmp_path):
+def test_converted_model_saved_as_workdir_loads_and_evaluates_from_the_cli(
+        fixture, converted, tmp_path):
     from configs import synthetic
 
     config = synthetic.get_config("smoke")
@@ -129,7 +132,8 @@ def test_converted_model_saved_as_workdir_loads_and_evaluates_from_the_cli(fixtu
         ("argmin_translation", False), ("z_augment", False)]]
     proc = subprocess.run(
         [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/synthetic.py:smoke",
-         f"--workdir={workdir}", "--mode=eval", "--config.data.synthetic.n_keypoints=17", *overrides],
+         f"--workdir={workdir}", "--mode=eval", "--config.data.synthetic.n_keypoints=17",
+         *overrides],
         cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     with open(os.path.join(workdir, "eval_results.json")) as f:

@@ -46,7 +46,8 @@ def test_batch_matches_the_per_example_model(params):
     assert isinstance(rec, Reconstruction) and isinstance(rec.shape_3d, np.ndarray)
     assert rec.shape_3d.shape == (5, 7, 3) and rec.rotation.shape == (5, 3, 3)
     assert rec.alpha.shape == (5, 3) and rec.kp_reprojected.shape == (5, 7, 2)
-    for ours, theirs in [(rec.shape_3d, "shape_image_coord"), (rec.shape_canonical, "shape_canonical"),
+    for ours, theirs in [(rec.shape_3d, "shape_image_coord"),
+                         (rec.shape_canonical, "shape_canonical"),
                          (rec.rotation, "rotation"), (rec.alpha, "alpha"),
                          (rec.kp_reprojected, "kp_reprojected")]:
         np.testing.assert_allclose(ours, ref[theirs], rtol=1e-5, atol=1e-4)

@@ -66,8 +66,9 @@ def test_write_run_figures_writes_curves_reconstructions_and_a_gif(run, tmp_path
 
 def test_reconstruction_plot_with_ground_truth_and_input_panel(tmp_path):
     shape = np.random.default_rng(0).normal(size=(17, 3))
-    fig = visualise.plot_reconstruction_3d(shape, gt=shape * [1, 1, -1], edges=visualise.SKELETONS["h36m"],
-                                           kp=shape[:, :2], vis=np.ones(17), views=((10, 0), (10, 90)))
+    fig = visualise.plot_reconstruction_3d(
+        shape, gt=shape * np.array([1.0, 1.0, -1.0]), edges=visualise.SKELETONS["h36m"],
+        kp=shape[:, :2], vis=np.ones(17), views=((10, 0), (10, 90)))
     assert len(fig.axes) == 3
     path = visualise.save_figure(fig, str(tmp_path / "r.png"))
     _assert_picture(path)

@@ -28,7 +28,8 @@ CELLS = [
         "from c3dpo_jax.data import load_splits, synthetic\n"
         "from configs import synthetic as synthetic_config"
     ),
-    new_markdown_cell("## Train\nSmoke settings (32-wide networks, 2 blocks) and a few more steps."),
+    new_markdown_cell(
+        "## Train\nSmoke settings (32-wide networks, 2 blocks) and a few more steps."),
     new_code_cell(
         "config = synthetic_config.get_config('smoke')\n"
         "config.train.num_steps = 40\n"
@@ -46,15 +47,18 @@ CELLS = [
         "params = load(workdir)\n"
         "cfg = config.data.synthetic\n"
         "new = synthetic.make_split(8, n_keypoints=cfg.n_keypoints, n_modes=cfg.n_modes,\n"
-        "                           deformation=cfg.deformation, occlusion=cfg.occlusion, noise=0.0,\n"
+        "                           deformation=cfg.deformation, occlusion=cfg.occlusion,\n"
+        "                           noise=0.0,\n"
         "                           perspective=False, shape_seed=cfg.seed, seed=1234)\n"
         "rec = reconstruct(params, new.kp, new.vis)\n"
         "print({k: v.shape for k, v in rec._asdict().items()})\n"
         "one = reconstruct(params, new.kp[0], new.vis[0])  # a single pose: no batch axis\n"
         "assert np.allclose(one.shape_3d, rec.shape_3d[0], atol=1e-4)\n"
-        "print('MPJPE on the new poses:', evaluation.evaluate(rec.shape_3d, new, 'default')['mpjpe'])"
+        "scores = evaluation.evaluate(rec.shape_3d, new, 'default')\n"
+        "print('MPJPE on the new poses:', scores['mpjpe'])"
     ),
-    new_markdown_cell("## Pictures\nTraining curves, and test poses in 3D next to the ground truth."),
+    new_markdown_cell(
+        "## Pictures\nTraining curves, and test poses in 3D next to the ground truth."),
     new_code_cell(
         "paths = visualise.write_run_figures(workdir, load_splits(config.data)[1], n_samples=2)\n"
         "for p in paths:\n"
