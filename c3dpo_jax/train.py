@@ -9,6 +9,11 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
   from the device-resident ``data`` with ``fold_in(train_key, step)``, so the data
   order and all augmentations depend only on (seed, step): a resumed run replays an
   uninterrupted one exactly.
+- ``make_mesh`` / ``replicate``: data parallelism. With a mesh, the chunk constrains
+  each sampled batch to be split over the mesh's ``"data"`` axis while parameters,
+  optimiser state and the training arrays stay replicated; XLA (GSPMD) partitions the
+  vmapped step and turns BatchNorm's batch means and the gradient sums into
+  all-reduces, so results equal one device's up to float rounding.
 - ``train_and_evaluate(config, workdir)``: the loop (progress bar, metrics.jsonl,
   orbax checkpoints and resume, evaluation at epoch ends and at the end).
 """
@@ -24,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from absl import logging
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from c3dpo_jax import baselines, checkpoint, evaluation, losses, model
@@ -89,8 +95,26 @@ def sample_indices(data, key, batch_size: int):
     return data["class_start"][cls] + offset
 
 
-def make_train_chunk(train_step, batch_size: int):
-    """``chunk(state, data, train_key, n_steps)``: ``n_steps`` steps in one ``lax.scan``."""
+def make_mesh(n_devices: int | None = None) -> Mesh:
+    """A 1D mesh with axis ``"data"`` over the first ``n_devices`` devices (default all)."""
+    devices = jax.devices()[: n_devices or jax.device_count()]
+    return Mesh(np.array(devices), ("data",))
+
+
+def replicate(tree, mesh: Mesh):
+    """Copies every array of ``tree`` onto every device of ``mesh``."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
+    """``chunk(state, data, train_key, n_steps)``: ``n_steps`` steps in one ``lax.scan``.
+
+    With ``mesh``, pass ``replicate``d state and data: each batch is split over the
+    mesh's ``"data"`` axis (``batch_size`` must be a multiple of its size).
+    """
+    if mesh is not None and batch_size % mesh.size:
+        raise ValueError(f"batch_size {batch_size} is not a multiple of {mesh.size} devices")
+    split = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
 
     def chunk(state: TrainState, data, train_key, n_steps: int):
         per_sample = {k: v for k, v in data.items() if k not in ("class_start", "class_count")}
@@ -99,6 +123,8 @@ def make_train_chunk(train_step, batch_size: int):
             k_idx, k_step = jax.random.split(jax.random.fold_in(train_key, state.step))
             idx = sample_indices(data, k_idx, batch_size)
             batch = jax.tree.map(lambda a: a[idx], per_sample)
+            if split is not None:
+                batch = jax.lax.with_sharding_constraint(batch, split)
             return train_step(state, batch, k_step)
 
         return jax.lax.scan(body, state, None, length=n_steps)
@@ -233,6 +259,19 @@ def _setup(config):
     return model_cfg, optim_cfg, steps_per_epoch, total, tx
 
 
+def _data_parallel_mesh(config) -> Mesh | None:
+    """All devices when there are several (``config.train.data_parallel``, if set, can veto)."""
+    n = jax.device_count()
+    if n == 1 or not config.train.get("data_parallel", True):
+        return None
+    if config.train.batch_size % n:
+        logging.warning("batch_size %d is not a multiple of %d devices: training on one device",
+                        config.train.batch_size, n)
+        return None
+    logging.info("data parallel over %d devices", n)
+    return make_mesh(n)
+
+
 def train_and_evaluate(config, workdir: str) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
 
@@ -254,9 +293,12 @@ def train_and_evaluate(config, workdir: str) -> dict:
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     data = device_train_data(train_data, config.data.class_balanced)
+    mesh = _data_parallel_mesh(config)
+    if mesh is not None:
+        state, data = replicate(state, mesh), replicate(data, mesh)
     schedule = make_schedule(optim_cfg, steps_per_epoch)
     train_step = make_train_step(model_cfg, LossConfig(**config.loss), tx, schedule)
-    chunk = jax.jit(make_train_chunk(train_step, config.train.batch_size),
+    chunk = jax.jit(make_train_chunk(train_step, config.train.batch_size, mesh),
                     static_argnames="n_steps", donate_argnums=0)
     eval_fn = jax.jit(make_eval_fn(model_cfg))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size

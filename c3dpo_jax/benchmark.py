@@ -1,0 +1,196 @@
+"""Throughput benchmark of the compiled training chunk and the eval forward pass.
+
+Run: ``python -m c3dpo_jax.benchmark --config=configs/h36m.py [--json=PATH] [--steps=N]``.
+
+Glossary: B batch, N keypoints, D shape-basis size, S canonicalisation samples, H width.
+
+Measures, on random device-resident data of the config's shapes and through the
+same ``make_train_chunk`` path as training: compile time, train steps/s and
+samples/s (median over single-step calls after warm-up), eval samples/s (compiled
+``make_eval_fn``), the analytic dense-layer FLOPs of a step and the fraction of this
+machine's float32 matmul rate (``jnp.dot`` on the same shapes, measured in the same
+run) that the step achieves, and peak memory. Numbers are for reporting, never tests.
+"""
+
+import json
+import platform
+import resource
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+from ml_collections import config_flags
+
+from c3dpo_jax import model, train
+from c3dpo_jax.state import create_train_state
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file (FILE[:ARGS]).",
+                                          lock_config=True)
+_JSON = flags.DEFINE_string("json", None, "Write the results to this JSON file.")
+_STEPS = flags.DEFINE_integer("steps", 10, "Timed train steps (after one warm-up call).")
+_EVAL_BATCH = flags.DEFINE_integer("eval_batch", 1024, "Batch size of the eval forward pass.")
+_REPEATS = flags.DEFINE_integer("repeats", 5, "Timed calls for eval and the matmul rate.")
+flags.mark_flags_as_required(["config"])
+
+
+def _trunk_shapes(dim_in: int, width: int, n_layers: int) -> list[tuple[int, int]]:
+    """(fan_in, fan_out) of the dense layers of a ``networks.Trunk``."""
+    inner = width // 4
+    return [(dim_in, width)] + [(width, inner), (inner, inner), (inner, width)] * n_layers
+
+
+def dense_layers(cfg: model.ModelConfig, batch: int, train_mode: bool = True):
+    """``[(rows, fan_in, fan_out)]``: every dense matmul of one forward pass over a batch."""
+    n, d = cfg.n_keypoints, cfg.shape_basis_size
+    h = cfg.n_fully_connected
+    heads = d + 3 + 3 * cfg.camera_translation + cfg.camera_scale
+    phi = _trunk_shapes(3 * n, h, cfg.n_layers) + [(h, heads)]
+    phi_rows = batch * (2 if train_mode and cfg.z_equivariance else 1)
+    layers = [(phi_rows, i, o) for i, o in phi] + [(batch, d, 3 * n)]
+    if train_mode and cfg.canonicalization:
+        hp = cfg.canonicalization_n_fully_connected
+        psi = _trunk_shapes(3 * n, hp, cfg.canonicalization_n_layers) + [(hp, d), (d, 3 * n)]
+        layers += [(batch * cfg.n_rand_samples, i, o) for i, o in psi]
+    return layers
+
+
+def flops(layers, train_mode: bool = True) -> float:
+    """Dense-layer FLOPs (2 per multiply-add); x3 for forward + backward when training."""
+    fwd = sum(2.0 * r * i * o for r, i, o in layers)
+    return 3.0 * fwd if train_mode else fwd
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def matmul_gflops(layers, repeats: int) -> float:
+    """Measured float32 rate of plain jitted ``jnp.dot`` over the step's layer shapes."""
+    key = jax.random.key(0)
+    xs = [jax.random.normal(jax.random.fold_in(key, 2 * j), (r, i)) for j, (r, i, _) in
+          enumerate(layers)]
+    ws = [jax.random.normal(jax.random.fold_in(key, 2 * j + 1), (i, o)) for j, (_, i, o) in
+          enumerate(layers)]
+    fn = jax.jit(lambda xs, ws: [jnp.dot(x, w) for x, w in zip(xs, ws)])
+    jax.block_until_ready(fn(xs, ws))
+    return flops(layers, train_mode=False) / _median_time(lambda: fn(xs, ws), repeats) / 1e9
+
+
+def random_data(cfg: model.ModelConfig, n_samples: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random inputs with the config's shapes (about 90% visible points)."""
+    rng = np.random.default_rng(seed)
+    n = cfg.n_keypoints
+    data = {
+        "kp": rng.normal(size=(n_samples, n, 2)).astype(np.float32),
+        "vis": (rng.random((n_samples, n)) < 0.9).astype(np.float32),
+        "class_mask": np.ones((n_samples, n), np.float32),
+    }
+    if cfg.projection_type == "perspective":
+        intr = np.tile(np.eye(3, dtype=np.float32), (n_samples, 1, 1))
+        data["kp"] += 5.0  # keep points away from the principal point
+        data["intrinsics"] = intr
+    return data
+
+
+def _peak_memory_mb() -> dict[str, float]:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out = {"peak_rss_mb": rss / (1024.0 if sys.platform != "darwin" else 1024.0**2)}
+    stats = jax.local_devices()[0].memory_stats()
+    if stats and "peak_bytes_in_use" in stats:
+        out["device_peak_mb"] = stats["peak_bytes_in_use"] / 2**20
+    return out
+
+
+def _time_train(config, model_cfg, tx, data, steps: int) -> dict[str, float]:
+    batch = config.train.batch_size
+    step_fn = train.make_train_step(model_cfg, train.LossConfig(**config.loss), tx)
+    chunk = jax.jit(train.make_train_chunk(step_fn, batch), static_argnames="n_steps",
+                    donate_argnums=0)
+    state = create_train_state(jax.random.key(0), model_cfg, tx)
+    key = jax.random.key(1)
+    t0 = time.perf_counter()
+    compiled = chunk.lower(state, data, key, n_steps=1).compile()
+    compile_s = time.perf_counter() - t0
+    state, _ = compiled(state, data, key)  # warm-up
+    jax.block_until_ready(state)
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        state, metrics = compiled(state, data, key)
+        jax.block_until_ready((state, metrics))
+        times.append(time.perf_counter() - t0)
+    if not np.all(np.isfinite(np.asarray(metrics["loss"]))):
+        raise FloatingPointError("non-finite loss in the benchmark")
+    step_s = statistics.median(times)
+    return {"compile_s": compile_s, "step_s": step_s, "steps_per_s": 1.0 / step_s,
+            "train_samples_per_s": batch / step_s}
+
+
+def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str, float]:
+    eval_fn = jax.jit(train.make_eval_fn(model_cfg))
+    idx = np.arange(batch) % data["vis"].shape[0]
+    inputs = jax.device_put({k: v[idx] for k, v in data.items()})
+    t0 = time.perf_counter()
+    compiled = eval_fn.lower(variables, inputs).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(variables, inputs))
+    sec = _median_time(lambda: compiled(variables, inputs), repeats)
+    return {"eval_compile_s": compile_s, "eval_samples_per_s": batch / sec}
+
+
+def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> dict:
+    """Runs every measurement for ``config``; returns a flat dict (see the module docstring)."""
+    model_cfg, _, _, _, tx = train._setup(config)
+    batch = config.train.batch_size
+    host = random_data(model_cfg, max(4 * batch, eval_batch))
+    data = jax.device_put(host)
+    res = {"config": config.data.get("name", "?"), "batch_size": batch,
+           "device": str(jax.devices()[0].device_kind), "n_devices": jax.device_count(),
+           "jax_version": jax.__version__, "platform": platform.platform(),
+           "load_avg_1m": float(__import__("os").getloadavg()[0])}
+    res.update(_time_train(config, model_cfg, tx, data, steps))
+    variables = create_train_state(jax.random.key(0), model_cfg, tx).variables
+    res.update(_time_eval(model_cfg, variables, host, eval_batch, repeats))
+    layers = dense_layers(model_cfg, batch)
+    res["flops_per_step"] = flops(layers)
+    res["matmul_gflops"] = matmul_gflops(layers, max(repeats, 10))
+    res["achieved_gflops"] = res["flops_per_step"] / res["step_s"] / 1e9
+    res["matmul_fraction"] = res["achieved_gflops"] / res["matmul_gflops"]
+    res["matmul_limit_samples_per_s"] = res["matmul_gflops"] * 1e9 / res["flops_per_step"] * batch
+    res.update(_peak_memory_mb())
+    return res
+
+
+def format_table(res: dict) -> str:
+    keys = ["config", "device", "n_devices", "batch_size", "compile_s", "steps_per_s",
+            "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
+            "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s", "peak_rss_mb",
+            "load_avg_1m"]
+    lines = []
+    for k in keys:
+        v = res.get(k)
+        lines.append(f"{k:28s} {v:.4g}" if isinstance(v, float) else f"{k:28s} {v}")
+    return "\n".join(lines)
+
+
+def main(argv):
+    del argv
+    res = run(_CONFIG.value, _STEPS.value, _EVAL_BATCH.value, _REPEATS.value)
+    print(format_table(res))
+    if _JSON.value:
+        with open(_JSON.value, "w") as f:
+            json.dump(res, f, indent=2)
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    app.run(main)

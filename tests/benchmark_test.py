@@ -1,0 +1,45 @@
+"""Benchmark CLI on a tiny config: JSON keys and sane (positive, finite) numbers, not speed."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+from c3dpo_jax import benchmark, model
+
+TINY = [
+    "--config.model.n_keypoints=8", "--config.model.shape_basis_size=3",
+    "--config.model.n_fully_connected=32", "--config.model.n_layers=1",
+    "--config.model.canonicalization_n_fully_connected=32",
+    "--config.model.canonicalization_n_layers=1", "--config.model.n_rand_samples=2",
+    "--config.train.batch_size=16",
+]
+
+
+def test_benchmark_cli_writes_sane_json(tmp_path):
+    out = tmp_path / "bench.json"
+    cmd = [sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/default.py", *TINY,
+           "--steps=2", "--repeats=2", "--eval_batch=32", f"--json={out}"]
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(out.read_text())
+    for k in ("train_samples_per_s", "eval_samples_per_s", "compile_s", "matmul_fraction",
+              "flops_per_step", "matmul_gflops", "steps_per_s", "peak_rss_mb"):
+        assert isinstance(res[k], float) and math.isfinite(res[k]) and res[k] > 0, k
+    for k in ("config", "device", "jax_version"):
+        assert isinstance(res[k], str) and res[k]
+    assert res["batch_size"] == 16
+    assert "train_samples_per_s" in proc.stdout
+
+
+def test_flops_count_matches_a_hand_count():
+    cfg = model.ModelConfig(n_keypoints=2, shape_basis_size=1, n_fully_connected=8, n_layers=1,
+                            canonicalization_n_fully_connected=4, canonicalization_n_layers=0,
+                            n_rand_samples=3)
+    # Phi on 2B rows: 6*8 + (8*2 + 2*2 + 2*8) + 8*(1+3); shape layer on B rows: 1*6;
+    # Psi on 3B rows: 6*4 + 4*1 + 1*6.
+    fwd_macs = 2 * (48 + 36 + 32) + 6 + 3 * (24 + 4 + 6)
+    assert benchmark.flops(benchmark.dense_layers(cfg, batch=1)) == 3 * 2 * fwd_macs
+    assert benchmark.flops(benchmark.dense_layers(cfg, 1, False), False) == 2 * (116 + 6)

@@ -1,0 +1,60 @@
+"""Data parallelism on 4 forced host devices equals one device up to float rounding.
+
+The check runs in a subprocess because ``--xla_force_host_platform_device_count``
+must be set before JAX starts (this test process has already started it).
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+SCRIPT = textwrap.dedent("""
+    import jax, numpy as np
+    from c3dpo_jax import model, train
+    from c3dpo_jax.data import synthetic
+    from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer
+
+    assert jax.device_count() == 4, jax.devices()
+    cfg = model.ModelConfig(
+        n_keypoints=8, shape_basis_size=3, n_fully_connected=32, n_layers=1,
+        canonicalization_n_fully_connected=32, canonicalization_n_layers=1,
+        n_rand_samples=2, z_augment=True)
+    tx = make_optimizer(OptimConfig(lr=1e-2), 100)
+    data = synthetic.make_split(256, n_keypoints=8, n_modes=2, deformation=0.3,
+                                occlusion=0.1, noise=0.0, perspective=False,
+                                shape_seed=0, seed=1).model_inputs()
+    step = train.make_train_step(cfg, train.LossConfig(), tx)
+    key = jax.random.key(1)
+    runs = {}
+    for name, mesh in (("one", None), ("four", train.make_mesh(4))):
+        state = create_train_state(jax.random.key(0), cfg, tx)
+        dev = jax.device_put(data, jax.devices()[0])
+        if mesh is not None:
+            state, dev = train.replicate(state, mesh), train.replicate(dev, mesh)
+        chunk = jax.jit(train.make_train_chunk(step, 32, mesh), static_argnames="n_steps")
+        first, _ = chunk(state, dev, key, n_steps=1)
+        state, metrics = chunk(state, dev, key, n_steps=8)
+        runs[name] = (first, metrics)
+        if mesh is not None:
+            assert len(state.params["alpha_layer"]["kernel"].sharding.device_set) == 4
+    # Step 0 agrees to float rounding; later steps drift as SGD amplifies rounding.
+    for k in ("loss", "loss/reprojection", "loss/canonicalisation", "grad_norm"):
+        one, four = np.asarray(runs["one"][1][k]), np.asarray(runs["four"][1][k])
+        np.testing.assert_allclose(four[0], one[0], rtol=5e-5, atol=1e-8, err_msg=k)
+        np.testing.assert_allclose(four, one, rtol=2e-3, atol=1e-7, err_msg=k)
+    a, b = (jax.tree.leaves(jax.device_get(runs[n][0])) for n in ("one", "four"))
+    for x, y in zip(a, b):  # the state after one step
+        np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-6)
+    print("OK", runs["one"][1]["loss"])
+""")
+
+
+def test_four_host_devices_match_one_device():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "OK" in proc.stdout
