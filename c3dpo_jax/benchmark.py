@@ -10,9 +10,12 @@ samples/s (median over single-step calls after warm-up), eval samples/s (compile
 ``make_eval_fn``), the analytic dense-layer FLOPs of a step and the fraction of this
 machine's float32 matmul rate (``jnp.dot`` on the same shapes, measured in the same
 run) that the step achieves, and peak memory. Numbers are for reporting, never tests.
+With several devices (e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``)
+the train step is data parallel over all of them, as in ``train.train_and_evaluate``.
 """
 
 import json
+import os
 import platform
 import resource
 import statistics
@@ -112,10 +115,13 @@ def _peak_memory_mb() -> dict[str, float]:
 
 def _time_train(config, model_cfg, tx, data, steps: int) -> dict[str, float]:
     batch = config.train.batch_size
+    mesh = train.make_mesh() if jax.device_count() > 1 else None
     step_fn = train.make_train_step(model_cfg, train.LossConfig(**config.loss), tx)
-    chunk = jax.jit(train.make_train_chunk(step_fn, batch), static_argnames="n_steps",
+    chunk = jax.jit(train.make_train_chunk(step_fn, batch, mesh), static_argnames="n_steps",
                     donate_argnums=0)
     state = create_train_state(jax.random.key(0), model_cfg, tx)
+    if mesh is not None:  # data parallel over every device, as train_and_evaluate does
+        state, data = train.replicate(state, mesh), train.replicate(data, mesh)
     key = jax.random.key(1)
     t0 = time.perf_counter()
     compiled = chunk.lower(state, data, key, n_steps=1).compile()
@@ -156,9 +162,11 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> di
     res = {"config": config.data.get("name", "?"), "batch_size": batch,
            "device": str(jax.devices()[0].device_kind), "n_devices": jax.device_count(),
            "jax_version": jax.__version__, "platform": platform.platform(),
-           "load_avg_1m": float(__import__("os").getloadavg()[0])}
+           "load_avg_1m": os.getloadavg()[0],
+           "matmul_precision": model_cfg.matmul_precision}
     res.update(_time_train(config, model_cfg, tx, data, steps))
-    variables = create_train_state(jax.random.key(0), model_cfg, tx).variables
+    variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
+                               jax.devices()[0])
     res.update(_time_eval(model_cfg, variables, host, eval_batch, repeats))
     layers = dense_layers(model_cfg, batch)
     res["flops_per_step"] = flops(layers)
@@ -167,6 +175,7 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> di
     res["matmul_fraction"] = res["achieved_gflops"] / res["matmul_gflops"]
     res["matmul_limit_samples_per_s"] = res["matmul_gflops"] * 1e9 / res["flops_per_step"] * batch
     res.update(_peak_memory_mb())
+    res["load_avg_1m_end"] = os.getloadavg()[0]
     return res
 
 
@@ -174,7 +183,7 @@ def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "compile_s", "steps_per_s",
             "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
             "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s", "peak_rss_mb",
-            "load_avg_1m"]
+            "load_avg_1m", "load_avg_1m_end"]
     lines = []
     for k in keys:
         v = res.get(k)

@@ -9,6 +9,7 @@ runs anywhere. Paper equations: reprojection (eq. 4, l1), canonicalisation (eq. 
 l2), in-plane equivariance (eq. 6, l3).
 """
 
+import contextlib
 import dataclasses
 from typing import Any
 
@@ -57,6 +58,10 @@ class ModelConfig:
     squared_reprojection_loss: bool = False
     replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
+    # Matmul precision of the forward passes (params stay float32): "default" (the
+    # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
+    # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
+    matmul_precision: str = "default"
 
     @classmethod
     def from_dict(cls, d) -> "ModelConfig":
@@ -70,6 +75,19 @@ class ModelConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+_PRECISIONS = ("default", "bfloat16", "tensorfloat32", "float32", "high", "highest",
+               "bfloat16_3x")
+
+
+def _precision(cfg: ModelConfig):
+    """Context manager that applies ``cfg.matmul_precision`` while tracing."""
+    if cfg.matmul_precision not in _PRECISIONS:
+        raise ValueError(f"unknown matmul_precision {cfg.matmul_precision!r}; known: {_PRECISIONS}")
+    if cfg.matmul_precision == "default":
+        return contextlib.nullcontext()
+    return jax.default_matmul_precision(cfg.matmul_precision)
 
 
 def make_network(cfg: ModelConfig) -> C3DPONet:
@@ -141,6 +159,20 @@ def forward_train(
       Huber, unmasked), per-sample canonicalisation errors ``canon`` (S,) (masked
       point means) and diagnostics; the updated BatchNorm statistics.
     """
+    with _precision(cfg):
+        return _forward_train(variables, kp, vis, class_mask, intrinsics, key, cfg)
+
+
+def _forward_train(
+    variables: Variables,
+    kp: Kp2,
+    vis: Vis,
+    class_mask: Float[Array, " N"],
+    intrinsics: Float[Array, "3 3"] | None,
+    key: jax.Array,
+    cfg: ModelConfig,
+) -> tuple[dict[str, Array], dict[str, Any]]:
+    """``forward_train`` under the precision context."""
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
     k_aug, k_eq, k_canon = jax.random.split(key, 3)
@@ -228,6 +260,19 @@ def forward_eval(
     ``theta`` (3,), ``alpha`` (D,), ``kp_reprojected`` (N, 2) in input coordinates,
     ``kp_norm`` (N, 2), ``kp_mean`` (2,), ``repro`` (N,) pseudo-Huber errors.
     """
+    with _precision(cfg):
+        return _forward_eval(variables, kp, vis, class_mask, intrinsics, cfg)
+
+
+def _forward_eval(
+    variables: Variables,
+    kp: Kp2,
+    vis: Vis,
+    class_mask: Float[Array, " N"],
+    intrinsics: Float[Array, "3 3"] | None,
+    cfg: ModelConfig,
+) -> dict[str, Array]:
+    """``forward_eval`` under the precision context."""
     net = make_network(cfg)
     kp_cal = _prepare(cfg, kp, intrinsics)
     kp_norm, centre = geometry.normalise_keypoints(

@@ -43,3 +43,23 @@ def test_flops_count_matches_a_hand_count():
     fwd_macs = 2 * (48 + 36 + 32) + 6 + 3 * (24 + 4 + 6)
     assert benchmark.flops(benchmark.dense_layers(cfg, batch=1)) == 3 * 2 * fwd_macs
     assert benchmark.flops(benchmark.dense_layers(cfg, 1, False), False) == 2 * (116 + 6)
+
+
+def test_matmul_precision_option_runs_and_stays_close():
+    import dataclasses
+
+    import jax
+    import numpy as np
+    import pytest
+
+    cfg = model.ModelConfig(n_keypoints=8, shape_basis_size=3, n_fully_connected=32, n_layers=1,
+                            canonicalization_n_fully_connected=32, canonicalization_n_layers=1)
+    variables = model.init_variables(jax.random.key(0), cfg)
+    data = jax.device_put(benchmark.random_data(cfg, 4))
+    args = (data["kp"][0], data["vis"][0], data["class_mask"][0], None)
+    ref = model.forward_eval(variables, *args, cfg=cfg)["shape_canonical"]
+    low = dataclasses.replace(cfg, matmul_precision="bfloat16")
+    out = model.forward_eval(variables, *args, cfg=low)["shape_canonical"]
+    np.testing.assert_allclose(out, ref, rtol=0.05, atol=1e-3)
+    with pytest.raises(ValueError, match="matmul_precision"):
+        model.forward_eval(variables, *args, cfg=dataclasses.replace(cfg, matmul_precision="x"))
