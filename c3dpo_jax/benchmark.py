@@ -31,13 +31,17 @@ from ml_collections import config_flags
 from c3dpo_jax import model, train
 from c3dpo_jax.state import create_train_state
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file (FILE[:ARGS]).",
-                                          lock_config=True)
-_JSON = flags.DEFINE_string("json", None, "Write the results to this JSON file.")
-_STEPS = flags.DEFINE_integer("steps", 10, "Timed train steps (after one warm-up call).")
-_EVAL_BATCH = flags.DEFINE_integer("eval_batch", 1024, "Batch size of the eval forward pass.")
-_REPEATS = flags.DEFINE_integer("repeats", 5, "Timed calls for eval and the matmul rate.")
-flags.mark_flags_as_required(["config"])
+def _define_flags():
+    """Defined only when run as a script, so importing this module next to
+    ``c3dpo_jax.main`` (tests, notebooks) does not clash on ``--config``."""
+    return dict(
+        config=config_flags.DEFINE_config_file("config", None, "Config file (FILE[:ARGS]).",
+                                               lock_config=True),
+        json=flags.DEFINE_string("json", None, "Write the results to this JSON file."),
+        steps=flags.DEFINE_integer("steps", 10, "Timed train steps (after one warm-up call)."),
+        eval_batch=flags.DEFINE_integer("eval_batch", 1024, "Batch size of the eval forward pass."),
+        repeats=flags.DEFINE_integer("repeats", 5, "Timed calls for eval and the matmul rate."),
+    )
 
 
 def _trunk_shapes(dim_in: int, width: int, n_layers: int) -> list[tuple[int, int]]:
@@ -191,15 +195,17 @@ def format_table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv):
+def main(argv, fl):
     del argv
-    res = run(_CONFIG.value, _STEPS.value, _EVAL_BATCH.value, _REPEATS.value)
+    res = run(fl["config"].value, fl["steps"].value, fl["eval_batch"].value, fl["repeats"].value)
     print(format_table(res))
-    if _JSON.value:
-        with open(_JSON.value, "w") as f:
+    if fl["json"].value:
+        with open(fl["json"].value, "w") as f:
             json.dump(res, f, indent=2)
     sys.stdout.flush()
 
 
 if __name__ == "__main__":
-    app.run(main)
+    _flags = _define_flags()
+    flags.mark_flags_as_required(["config"])
+    app.run(lambda argv: main(argv, _flags))
