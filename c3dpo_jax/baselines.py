@@ -8,14 +8,17 @@ units, scored with the same protocol as the model:
   camera, least squares on the visible points) to each view; observed x, y are kept
   for visible points and the depth is the fitted shape's.
 - ``zero depth``: the same x, y with depth 0 (what a method learns if it learns nothing).
+- ``oracle mean shape`` (``oracle_mean_shape``, needs the test split's 3D ground truth):
+  the mean shape rotated and translated onto each ground-truth shape (best rotation,
+  Kabsch); its error is the part of the shapes that no rigid model explains.
 """
 
 import numpy as np
 
 
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) rotations minimising ||R src_m - dst||, no reflections."""
-    h = np.einsum("mni,nj->mij", src, dst)
+    """(M, 3, 3) rotations minimising ||R src_m - dst_m||, no reflections (dst (N, 3) or (M, N, 3))."""
+    h = np.einsum("mni,mnj->mij", src, np.broadcast_to(dst, src.shape))
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(np.einsum("mij,mjk->mik", u, vt)))
     u[:, :, 2] *= d[:, None]
@@ -55,6 +58,18 @@ def fit_mean_shape(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -> n
     xy = np.where(w[..., None] > 0, kp, xy)
     depth = scale[:, None] * np.einsum("mnj,mj->mn", centred, axis)
     return np.concatenate([xy, depth[..., None]], axis=-1)
+
+
+def oracle_mean_shape(mean_shape: np.ndarray, kp3d: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """The mean shape under each sample's best rotation onto ``kp3d`` (visible points)."""
+    w = vis.astype(np.float64)[..., None]
+    count = np.maximum(w.sum(1, keepdims=True), 1.0)
+    gt_mean = (kp3d * w).sum(1, keepdims=True) / count
+    src_mean = (mean_shape[None] * w).sum(1, keepdims=True) / count
+    src = (mean_shape[None] - src_mean) * w
+    dst = (kp3d - gt_mean) * w
+    rot = _kabsch(src, dst)
+    return np.einsum("mij,mnj->mni", rot, mean_shape[None] - src_mean) + gt_mean
 
 
 def predict(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -> dict[str, np.ndarray]:

@@ -19,17 +19,5 @@ def get_config(arg=None):
     c.data.source = "humans"
     c.data.protocol = "up3d"  # mean depth of pred and gt set to 0, as for S-Up3D
     c.model.n_keypoints = 17 + c.data.humans.dense_points
-    c.model.shape_basis_size = 10
-    c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 256
-    c.model.n_layers = c.model.canonicalization_n_layers = 3
-    c.model.argmin_translation = True  # self-occlusion hides points
-    c.model.z_augment = True
-    c.model.z_augment_rot_angle = 0.3925
-    c.optim.optimizer = "adam"
-    c.optim.lr = 3e-3
-    c.optim.weight_decay = 0.0
-    c.optim.lr_milestones = (8,)
-    c.train.batch_size = 256
-    c.train.samples_per_epoch = 256 * 500
-    c.train.epochs = 10
+    default.cpu_recipe(c)
     return default.apply_variants(c, arg)

@@ -18,17 +18,6 @@ def get_config(arg=None):
     c = default.get_config()
     c.data.name = "own_json"
     c.data.source = "json"  # train_path/test_path must be given
-    c.model.shape_basis_size = 10
-    c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 256
-    c.model.n_layers = c.model.canonicalization_n_layers = 3
-    c.model.argmin_translation = True
-    c.model.z_augment = True
-    c.model.z_augment_rot_angle = 0.3925
-    c.optim.optimizer = "adam"
-    c.optim.lr = 3e-3
-    c.optim.weight_decay = 0.0
-    c.optim.lr_milestones = (8,)
-    c.train.batch_size = 256
+    default.cpu_recipe(c)
     c.train.samples_per_epoch = 256 * 200
-    c.train.epochs = 10
     return default.apply_variants(c, arg)
