@@ -19,5 +19,4 @@ def get_config(arg=None):
     c.data.name = "own_json"
     c.data.source = "json"  # train_path/test_path must be given
     default.cpu_recipe(c)
-    c.train.samples_per_epoch = 256 * 200
     return default.apply_variants(c, arg)

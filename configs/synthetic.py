@@ -19,4 +19,5 @@ def get_config(arg=None):
     c.data.synthetic.cameras = "upright"
     c.model.n_keypoints = c.data.synthetic.n_keypoints
     default.cpu_recipe(c)
+    c.train.samples_per_epoch = 256 * 500  # 5000 steps: the quick-start job (~2 min)
     return default.apply_variants(c, arg)

@@ -1,0 +1,120 @@
+"""Tables and a figure from ``results/*.json`` of run.py.
+
+  python experiments/time_to_accuracy/report.py [--results=DIR] [--at=120,300,600]
+
+Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the number
+of seeds in brackets when more than one; the three baselines; the ratio of the fitted
+mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png``
+(MPJPE against wall time, one panel per dataset).
+"""
+
+import argparse
+import collections
+import glob
+import json
+import os
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BASELINES = ("zero depth", "fitted mean shape", "oracle mean shape")
+
+
+def load(results_dir: str) -> list[dict]:
+    runs = []
+    for path in sorted(glob.glob(os.path.join(results_dir, "*.json"))):
+        with open(path) as f:
+            runs.append(json.load(f))
+    return runs
+
+
+def mpjpe_at(run: dict, t: float) -> float:
+    """MPJPE of the last evaluation at or before ``t`` (NaN if the run stopped earlier)."""
+    points = [p for p in run["curve"] if p["t"] <= t + 1e-6]
+    if not points or run["budget_s"] < t - 1e-6:
+        return float("nan")
+    return points[-1]["mpjpe"]
+
+
+def _cell(values: list[float]) -> str:
+    values = [v for v in values if np.isfinite(v)]
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{values[0]:.3f}"
+    return f"{np.mean(values):.3f} ± {np.std(values):.3f} ({len(values)})"
+
+
+def table(runs: list[dict], at: list[float], recipes: list[str]) -> str:
+    by = collections.defaultdict(list)
+    for r in runs:
+        by[(r["dataset"], r["recipe"])].append(r)
+    datasets = sorted({r["dataset"] for r in runs})
+    head = ["dataset"] + [f"{rec} {t / 60:g} min" for rec in recipes for t in at]
+    head += list(BASELINES) + [f"fitted mean / {recipes[0]} ({at[-1] / 60:g} min)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for d in datasets:
+        cells = [d]
+        for rec in recipes:
+            cells += [_cell([mpjpe_at(r, t) for r in by[(d, rec)]]) for t in at]
+        any_run = next(r for r in runs if r["dataset"] == d)
+        cells += [f"{any_run['baselines'][b]:.3f}" for b in BASELINES]
+        last = [mpjpe_at(r, at[-1]) for r in by[(d, recipes[0])]]
+        last = [v for v in last if np.isfinite(v)]
+        ratio = any_run["baselines"]["fitted mean shape"] / np.mean(last) if last else float("nan")
+        cells.append(f"{ratio:.2f}x")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def figure(runs: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    datasets = sorted({r["dataset"] for r in runs})
+    cols = min(4, len(datasets))
+    rows = -(-len(datasets) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
+    colours = {}
+    for ax, d in zip(axes.flat, datasets):
+        for r in (r for r in runs if r["dataset"] == d):
+            colour = colours.setdefault(r["recipe"], f"C{len(colours)}")
+            t = [p["t"] / 60 for p in r["curve"]]
+            ax.plot(t, [p["mpjpe"] for p in r["curve"]], color=colour, alpha=0.8,
+                    label=r["recipe"] if r["seed"] == min(x["seed"] for x in runs
+                                                          if x["dataset"] == d and x["recipe"] == r["recipe"]) else None)
+        base = next(r for r in runs if r["dataset"] == d)["baselines"]
+        for name, style in zip(BASELINES, (":", "--", "-.")):
+            ax.axhline(base[name], color="gray", linestyle=style, label=name)
+        ax.set_title(d)
+        ax.set_yscale("log")
+        ax.set_xlabel("training wall time (min)")
+        ax.set_ylabel("test MPJPE")
+    for ax in axes.flat[len(datasets):]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--results", default=os.path.join(HERE, "results"))
+    parser.add_argument("--at", default="120,300,600", help="budgets in seconds")
+    parser.add_argument("--recipes", default="cpu,official")
+    args = parser.parse_args()
+    runs = load(args.results)
+    if not runs:
+        raise SystemExit(f"no results in {args.results}; run run.py first")
+    at = [float(t) for t in args.at.split(",")]
+    recipes = [r for r in args.recipes.split(",") if any(x["recipe"] == r for x in runs)]
+    print(table(runs, at, recipes))
+    figure(runs, os.path.join(args.results, "curves.png"))
+    print(f"figure: {os.path.join(args.results, 'curves.png')}")
+
+
+if __name__ == "__main__":
+    main()

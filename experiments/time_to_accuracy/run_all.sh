@@ -1,0 +1,81 @@
+#!/usr/bin/env bash
+# The whole experiment: calibrate each (dataset, recipe) alone on the machine, then
+# replay every run at the calibrated rate, two at a time, one core each.
+#
+#   bash experiments/time_to_accuracy/run_all.sh                # everything
+#   DATASETS="pickup humans" SEEDS="0 1" bash experiments/time_to_accuracy/run_all.sh
+#
+# Calibration runs (60 s of training, alone) go to results/calibration/; replayed runs
+# to results/. Then: python experiments/time_to_accuracy/report.py
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+PY=${PY:-.venv/bin/python}
+HERE=experiments/time_to_accuracy
+DATASETS=${DATASETS:-"drink face jaws pickup stretch yoga humans"}
+RECIPES=${RECIPES:-"cpu official"}
+SEEDS=${SEEDS:-"0"}
+BUDGET=${BUDGET:-600}
+CAL=$HERE/results/calibration
+mkdir -p "$CAL" "$HERE/logs"
+
+for d in $DATASETS; do
+  for r in $RECIPES; do
+    f=$CAL/${d}__${r}__s0.json
+    [ -f "$f" ] || "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --budget_s=60 \
+      --eval_every_s=60 --out_dir="$CAL" > "$HERE/logs/cal_${d}_${r}.log" 2>&1
+  done
+done
+
+rate() {  # steps_per_s compile_s of a calibration file
+  "$PY" -c "import json,sys; r=json.load(open(sys.argv[1])); print(r['steps_per_s'], r['compile_s'])" "$1"
+}
+
+# Small networks (PARALLEL_RECIPES) run two at a time, one core each: on this 2-core
+# machine that gives ~1.4x the throughput of one run on both cores. Large ones (the
+# official 1024 x 6 trunks) are ~5x slower on one core than on two, so they run alone.
+PARALLEL_RECIPES=${PARALLEL_RECIPES:-"cpu"}
+jobs_file=$(mktemp)
+serial_file=$(mktemp)
+for s in $SEEDS; do
+  for r in $RECIPES; do
+    for d in $DATASETS; do
+      [ -f "$HERE/results/${d}__${r}__s${s}.json" ] && continue
+      read -r sps cs < <(rate "$CAL/${d}__${r}__s0.json")
+      if [[ " $PARALLEL_RECIPES " == *" $r "* ]]; then
+        echo "$d $r $s $sps $cs" >> "$jobs_file"
+      else
+        echo "$d $r $s $sps $cs" >> "$serial_file"
+      fi
+    done
+  done
+done
+
+pop() {  # prints and removes the first job, atomically
+  flock 9
+  head -n 1 "$jobs_file"
+  sed -i 1d "$jobs_file"
+} 9> "$jobs_file.lock"
+
+one() {  # one D R S SPS CS [taskset/XLA prefix...]
+  local d=$1 r=$2 s=$3 sps=$4 cs=$5
+  shift 5
+  "$@" "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --seed="$s" --budget_s="$BUDGET" \
+    --steps_per_s="$sps" --compile_s="$cs" < /dev/null > "$HERE/logs/${d}_${r}_s${s}.log" 2>&1 \
+    || echo "FAILED: $d $r $s (see $HERE/logs/${d}_${r}_s${s}.log)"
+}
+
+worker() {  # worker CORE: runs jobs from the shared queue on that core
+  local core=$1 line
+  while line=$(pop) && [ -n "$line" ]; do
+    # shellcheck disable=SC2086
+    one $line env XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \
+      taskset -c "$core"
+  done
+}
+worker 0 & worker 1 & wait
+while read -r line; do
+  # shellcheck disable=SC2086
+  one $line env
+done < "$serial_file"
+rm -f "$jobs_file" "$jobs_file.lock" "$serial_file"
+"$PY" $HERE/report.py
