@@ -250,6 +250,15 @@ def _write_results(workdir: str, results: dict) -> None:
         json.dump(results, f, indent=2)
 
 
+def _read_results(workdir: str) -> dict:
+    """The workdir's ``eval_results.json`` ({} when there is none yet)."""
+    path = os.path.join(workdir, "eval_results.json")
+    if not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        return json.load(f)
+
+
 def _setup(config):
     model_cfg = model.ModelConfig.from_dict(config.model)
     optim_cfg = OptimConfig.from_dict(config.optim)
@@ -303,7 +312,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
     eval_fn = jax.jit(make_eval_fn(model_cfg))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
     eval_every = config.train.eval_every_epochs * steps_per_epoch
-    history = []
+    # A resumed run keeps the evaluations made before its checkpoint.
+    history = [h for h in _read_results(workdir).get("history", []) if h["step"] <= step]
     pbar = tqdm(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
     writer = _MetricsWriter(workdir, pbar)
@@ -334,7 +344,10 @@ def train_and_evaluate(config, workdir: str) -> dict:
 
 
 def evaluate_checkpoint(config, workdir: str) -> dict:
-    """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split."""
+    """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
+
+    Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays.
+    """
     model_cfg, _, _, _, tx = _setup(config)
     template = create_train_state(jax.random.key(0), model_cfg, tx)
     state, step = checkpoint.restore_latest(workdir, template)
@@ -342,7 +355,7 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(state.variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
-    results = {"final": dict(step=step, **final),
-               "baselines": baseline_results(train_data, test_data, config.data.protocol)}
+    results = dict(_read_results(workdir), final=dict(step=step, **final),
+                   baselines=baseline_results(train_data, test_data, config.data.protocol))
     _write_results(workdir, results)
     return results

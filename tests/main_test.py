@@ -37,8 +37,10 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path):
     assert len(_read(workdir, "metrics.jsonl").splitlines()) == 4
     evaluated = _run("--config=configs/synthetic.py:smoke", f"--workdir={workdir}", "--mode=eval")
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
-    assert json.loads(_read(workdir, "eval_results.json"))["final"]["mpjpe"] == pytest.approx(
-        results["final"]["mpjpe"], rel=1e-5)
+    reevaluated = json.loads(_read(workdir, "eval_results.json"))
+    assert reevaluated["final"]["mpjpe"] == pytest.approx(results["final"]["mpjpe"], rel=1e-5)
+    assert [h["step"] for h in reevaluated["history"]] == [h["step"] for h in results["history"]]
+    assert results["history"], "the smoke run evaluates at its epoch ends"
 
 
 def test_wrong_keypoint_count_is_a_clear_error(tmp_path):
