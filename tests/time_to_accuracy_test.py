@@ -45,5 +45,5 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
                              "--at=2,3"], check=True, capture_output=True, text=True)
     row = next(line for line in report.stdout.splitlines() if line.startswith("| wave"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[1:3] == [f"{p['mpjpe']:.3f}" for p in result["curve"][1:]]
+    assert cells[1:3] == [f"{p['mpjpe']:.3f}" for p in result["curve"][1:]]  # t = 2 s, 3 s
     assert os.path.getsize(os.path.join(out, "curves.png")) > 1000

@@ -56,6 +56,8 @@ flags.DEFINE_float("budget_s", 600.0, "wall-clock training budget in seconds")
 flags.DEFINE_float("eval_every_s", 30.0, "evaluate the test split every this many seconds")
 flags.DEFINE_integer("views_per_frame", 10, "random cameras per frame of a sequence")
 flags.DEFINE_enum("cameras", "upright", ["uniform", "upright"], "camera distribution")
+flags.DEFINE_integer("train_poses", 0, "humans: training people/poses (0: configs/default.py's)")
+flags.DEFINE_bool("self_occlusion", True, "humans: hide points behind the body")
 flags.DEFINE_integer("chunk_steps", 0, "steps per compiled call (0: recipe default)")
 flags.DEFINE_float("steps_per_s", 0.0, "replay mode: calibrated training steps per second")
 flags.DEFINE_float("compile_s", 0.0, "replay mode: calibrated compile seconds")
@@ -69,8 +71,8 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     if name == "humans":
         h = default.get_config().data.humans
         train_data, test_data = humans.make_splits(
-            h.n_train_poses, h.n_test_poses, h.views_per_pose, cameras=h.cameras,
-            max_elevation=h.max_elevation, seed=seed)
+            FLAGS.train_poses or h.n_train_poses, h.n_test_poses, h.views_per_pose, cameras=h.cameras,
+            max_elevation=h.max_elevation, self_occlusion=FLAGS.self_occlusion, seed=seed)
         return train_data, test_data, "up3d"
     path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
     if not os.path.exists(path):
