@@ -3,6 +3,7 @@
 import contextlib
 import functools
 import hashlib
+import importlib
 import http.server
 import os
 import socket
@@ -117,3 +118,12 @@ def test_dataset_files_downloads_both_splits(tmp_path):
 def _read(path):
     with open(path, "rb") as f:
         return f.read()
+
+
+@pytest.mark.parametrize("module", ["up3d", "h36m", "h36m_hourglass", "pascal3d",
+                                    "pascal3d_hrnet", "cub_birds"])
+def test_each_release_config_names_its_dataset_and_that_dataset_s_protocol(module):
+    c = importlib.import_module(f"configs.{module}").get_config()
+    assert c.data.source == "release"
+    assert c.data.protocol == download.protocol(c.data.name)
+    assert c.data.min_visible == 0
