@@ -269,7 +269,7 @@ def _setup(config):
 
 
 def _data_parallel_mesh(config) -> Mesh | None:
-    """All devices when there are several (``config.train.data_parallel``, if set, can veto)."""
+    """All devices when there are several, unless ``config.train.data_parallel`` is False."""
     n = jax.device_count()
     if n == 1 or not config.train.get("data_parallel", True):
         return None

@@ -70,6 +70,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         eval_every_epochs=1,  # 0 disables evaluation at epoch ends
         eval_batch_size=1024,
         progress_bar=True,
+        data_parallel=True,  # split each batch over all devices when there are several
     )
     return c
 
