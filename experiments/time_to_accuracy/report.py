@@ -79,12 +79,13 @@ def figure(runs: list[dict], path: str) -> None:
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
     colours = {}
     for ax, d in zip(axes.flat, datasets):
+        labelled = set()  # one legend entry per recipe, however many seeds
         for r in (r for r in runs if r["dataset"] == d):
             colour = colours.setdefault(r["recipe"], f"C{len(colours)}")
+            label = None if r["recipe"] in labelled else r["recipe"]
+            labelled.add(r["recipe"])
             t = [p["t"] / 60 for p in r["curve"]]
-            ax.plot(t, [p["mpjpe"] for p in r["curve"]], color=colour, alpha=0.8,
-                    label=r["recipe"] if r["seed"] == min(x["seed"] for x in runs
-                                                          if x["dataset"] == d and x["recipe"] == r["recipe"]) else None)
+            ax.plot(t, [p["mpjpe"] for p in r["curve"]], color=colour, alpha=0.8, label=label)
         base = next(r for r in runs if r["dataset"] == d)["baselines"]
         for name, style in zip(BASELINES, (":", "--", "-.")):
             ax.axhline(base[name], color="gray", linestyle=style, label=name)
