@@ -124,15 +124,28 @@ def _camera(cfg: ModelConfig, phi_out, x_canon):
     return phi_out["scale"] * x_canon @ rot.T, t, rot
 
 
-def _prepare(cfg: ModelConfig, kp, intrinsics):
+def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
+    """``(kp_cal, kp_norm, centre)``: calibrated keypoints (perspective) and the
+    network's centred, rescaled input with the centre that was removed."""
     if cfg.projection_type == "perspective":
         if intrinsics is None:
             raise ValueError("a perspective model needs per-sample intrinsics K")
-        return geometry.calibrate(kp, intrinsics)
-    return kp
+        kp = geometry.calibrate(kp, intrinsics)
+    kp_norm, centre = geometry.normalise_keypoints(
+        kp, vis, norm_type=cfg.keypoint_norm_type,
+        rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
+    )
+    return kp, kp_norm, centre
 
 
-def _project(cfg: ModelConfig, x_cam, kp_norm, vis):
+def _shape(net, params, alpha, class_mask):
+    """Canonical shape (N, 3) from basis coefficients; points outside the class are 0."""
+    return net.apply({"params": params}, alpha, method="shape") * class_mask[:, None]
+
+
+def _reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
+    """``(proj, depth, dist_sq)``: projection of the camera-frame shape, its depth and
+    the squared distance of each projected point to the normalised input."""
     proj, depth = geometry.project(
         x_cam,
         projection_type=cfg.projection_type,
@@ -140,7 +153,7 @@ def _project(cfg: ModelConfig, x_cam, kp_norm, vis):
     )
     if cfg.argmin_translation:
         proj = geometry.argmin_translation(proj, kp_norm, vis)
-    return proj, depth
+    return proj, depth, jnp.sum((proj - kp_norm) ** 2, axis=-1)
 
 
 def forward_train(
@@ -176,10 +189,7 @@ def _forward_train(
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
     k_aug, k_eq, k_canon = jax.random.split(key, 3)
-    kp_norm, _ = geometry.normalise_keypoints(
-        _prepare(cfg, kp, intrinsics), vis, norm_type=cfg.keypoint_norm_type,
-        rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
-    )
+    _, kp_norm, _ = _normalised_input(cfg, kp, vis, intrinsics)
 
     def phi(kp_in, stats):
         out, upd = net.apply(
@@ -206,15 +216,11 @@ def _forward_train(
     else:
         phi_out, stats = phi(kp_in, stats)
 
-    def shape(alpha):
-        return net.apply({"params": params}, alpha, method="shape") * class_mask[:, None]
-
-    x_canon = shape(phi_out["alpha"])
+    x_canon = _shape(net, params, phi_out["alpha"], class_mask)
     x_cam, t, _ = _camera(cfg, phi_out, x_canon)
     r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
     x_cam = (x_cam + t[None]) @ r_aug3  # applies R_aug^T to column vectors
-    proj, _ = _project(cfg, x_cam, kp_norm, vis)
-    dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
+    _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     repro = dist_sq if cfg.squared_reprojection_loss else huber(dist_sq, cfg.huber_scaling)
     terms = {"repro": repro, "canon": jnp.zeros((0,))}
     if cfg.canonicalization:
@@ -235,7 +241,7 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
             {"params": params, "batch_stats": stats}, x_canon @ rot.T, True,
             method="psi", mutable=["batch_stats"],
         )
-        x_hat = net.apply({"params": params}, alpha_psi, method="shape") * class_mask[:, None]
+        x_hat = _shape(net, params, alpha_psi, class_mask)
         err = huber(jnp.sum((x_hat - x_canon) ** 2, axis=-1), cfg.huber_scaling)
         return geometry.masked_mean(err, class_mask), upd["batch_stats"]
 
@@ -274,17 +280,12 @@ def _forward_eval(
 ) -> dict[str, Array]:
     """``forward_eval`` under the precision context."""
     net = make_network(cfg)
-    kp_cal = _prepare(cfg, kp, intrinsics)
-    kp_norm, centre = geometry.normalise_keypoints(
-        kp_cal, vis, norm_type=cfg.keypoint_norm_type,
-        rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
-    )
+    kp_cal, kp_norm, centre = _normalised_input(cfg, kp, vis, intrinsics)
     phi_out = net.apply(variables, kp_norm, vis, False, method="phi")
-    x_canon = net.apply(variables, phi_out["alpha"], method="shape") * class_mask[:, None]
+    x_canon = _shape(net, variables["params"], phi_out["alpha"], class_mask)
     x_cam, t, rot = _camera(cfg, phi_out, x_canon)
     x_cam = x_cam + t[None]
-    proj, depth = _project(cfg, x_cam, kp_norm, vis)
-    dist_sq = jnp.sum((proj - kp_norm) ** 2, axis=-1)
+    proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image
     if cfg.replace_keypoints_with_input:
