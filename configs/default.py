@@ -46,7 +46,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         ),
         humans=dict(  # data/humans.py: 17 H36M-order joints (+ dense surface points)
             n_train_poses=300, n_test_poses=50, views_per_pose=30, dense_points=0,
-            cameras="upright", max_elevation=0.5, noise=0.0, self_occlusion=True, seed=0,
+            cameras="upright", max_elevation=0.5, noise=0.0, self_occlusion=True,
+            proportions=1.0,  # spread of body proportions (0: one body for everyone)
+            seed=0,
         ),
         categories=dict(  # data/categories.py: 5 classes packed into 45 keypoints
             n_train=5000, n_test=1000,

@@ -46,3 +46,20 @@ def test_a_point_behind_a_sphere_is_hidden_and_one_in_front_is_not():
     points = np.array([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.5, 0.0, 1.0]]])
     vis = humans.occlusion_visibility(points, centres, np.array([0.2]), np.zeros((3, 1), bool))
     assert vis.tolist() == [[0.0, 1.0, 1.0]]  # the camera looks along +z
+
+
+def _bone_lengths(data, n_poses, views):
+    x = data.kp3d.reshape(n_poses, views, 17, 3)[:, 0]
+    parents = np.array(humans.PARENTS[1:])
+    return np.linalg.norm(x[:, 1:] - x[:, parents], axis=-1)  # (P, 16)
+
+
+def test_proportions_spread_sets_how_much_bodies_differ():
+    same = _bone_lengths(humans.make_split(6, views_per_pose=2, self_occlusion=False,
+                                           proportions=0.0, seed=2), 6, 2)
+    np.testing.assert_allclose(same, np.broadcast_to(same[:1], same.shape), atol=1e-5)
+    spreads = [np.std(_bone_lengths(humans.make_split(
+        200, views_per_pose=1, self_occlusion=False, proportions=p, seed=2), 200, 1) / same[0],
+        axis=0).mean() for p in (0.5, 1.0)]
+    assert 0 < spreads[0] < spreads[1]  # relative bone-length spread grows with it
+    assert 0.04 < spreads[1] < 0.15  # height +-15% and limbs +-10% (uniform)

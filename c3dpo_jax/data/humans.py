@@ -62,10 +62,11 @@ def _euler(angles: np.ndarray) -> np.ndarray:
     return ry @ rx @ rz
 
 
-def _proportions(rng: np.random.Generator, p: int) -> np.ndarray:
-    """(P, J, 3) rest offsets: body height and each limb's length vary per person."""
-    height = rng.uniform(0.85, 1.15, size=(p, 1, 1))
-    limb = rng.uniform(0.9, 1.1, size=(p, 17, 1))
+def _proportions(rng: np.random.Generator, p: int, spread: float = 1.0) -> np.ndarray:
+    """(P, J, 3) rest offsets: body height (+-15% x spread) and each limb's length
+    (+-10% x spread) vary per person; ``spread=0``: everyone has the same body."""
+    height = 1 + spread * rng.uniform(-0.15, 0.15, size=(p, 1, 1))
+    limb = 1 + spread * rng.uniform(-0.1, 0.1, size=(p, 17, 1))
     for left, right in ((1, 4), (2, 5), (3, 6), (11, 14), (12, 15), (13, 16)):
         limb[:, right] = limb[:, left]  # left and right limbs match
     return _OFFSETS[None] * height * limb
@@ -151,14 +152,15 @@ def _joint_exclusions(sphere_bone: np.ndarray) -> np.ndarray:
 
 def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
                cameras: str = "upright", max_elevation: float | int = 0.5, noise: float | int = 0.0,
-               self_occlusion: bool = True, seed: int = 0) -> KeypointData:
+               self_occlusion: bool = True, proportions: float | int = 1.0,
+               seed: int = 0) -> KeypointData:
     """``n_poses * views_per_pose`` views of ``n_poses`` random people and poses.
 
     Keypoints are the 17 joints followed by ``dense_points`` surface points (the same
     surface parametrisation for every person, so the points correspond).
     """
     rng = np.random.default_rng(seed)
-    offsets = _proportions(rng, n_poses)
+    offsets = _proportions(rng, n_poses, proportions)
     lo, hi = _LIMITS[..., 0], _LIMITS[..., 1]
     # Triangular between the limits: extreme angles are rarer than middle ones.
     angles = lo + (hi - lo) * rng.uniform(size=(2, n_poses, 17, 3)).mean(0)
@@ -193,10 +195,12 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
 
 def make_splits(n_train_poses: int = 300, n_test_poses: int = 50, views_per_pose: int = 30,
                 dense_points: int = 0, cameras: str = "upright", max_elevation: float | int = 0.5,
-                noise: float | int = 0.0, self_occlusion: bool = True, seed: int = 0
+                noise: float | int = 0.0, self_occlusion: bool = True,
+                proportions: float | int = 1.0, seed: int = 0
                 ) -> tuple[KeypointData, KeypointData]:
     """Train and test splits with different people and poses; reproducible from ``seed``."""
     common = dict(views_per_pose=views_per_pose, dense_points=dense_points, cameras=cameras,
-                  max_elevation=max_elevation, noise=noise, self_occlusion=self_occlusion)
+                  max_elevation=max_elevation, noise=noise, self_occlusion=self_occlusion,
+                  proportions=proportions)
     return (make_split(n_train_poses, seed=seed * 2 + 1, **common),
             make_split(n_test_poses, seed=seed * 2 + 2, **common))
