@@ -69,10 +69,11 @@ flags.DEFINE_string("tag", "", "suffix of the recipe name in the results (search
 def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     """(train, test, protocol) for a sequence name/path or ``humans``."""
     if name == "humans":
-        h = default.get_config().data.humans
+        h = _override(default.get_config(), FLAGS.set, "data.humans.").data.humans
         train_data, test_data = humans.make_splits(
             FLAGS.train_poses or h.n_train_poses, h.n_test_poses, h.views_per_pose, cameras=h.cameras,
-            max_elevation=h.max_elevation, self_occlusion=FLAGS.self_occlusion, seed=seed)
+            max_elevation=h.max_elevation, self_occlusion=FLAGS.self_occlusion,
+            proportions=h.proportions, seed=seed)
         return train_data, test_data, "up3d"
     path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
     if not os.path.exists(path):
@@ -94,8 +95,15 @@ def recipe_config(recipe: str, n_keypoints: int, protocol: str):
         c = default.cpu_recipe(default.get_config())
     c.model.n_keypoints = n_keypoints
     c.data.protocol = protocol
-    for item in FLAGS.set:
+    return _override(c, FLAGS.set)
+
+
+def _override(c, items, prefix: str = ""):
+    """Applies ``KEY=VALUE`` overrides (those whose key starts with ``prefix``) to ``c``."""
+    for item in items:
         key, value = item.split("=", 1)
+        if not key.startswith(prefix):
+            continue
         *parents, leaf = key.split(".")
         node = c
         for p in parents:
@@ -109,12 +117,29 @@ def recipe_config(recipe: str, n_keypoints: int, protocol: str):
     return c
 
 
+def visibility_split(pred, data) -> dict:
+    """Flip-resolved point errors of the visible and of the hidden points (datasets with
+    occlusion; depth centred over all points as in the default/up3d protocols)."""
+    hidden = data.vis < 0.5
+    if not hidden.any():
+        return {}
+    all_pts = np.ones_like(data.vis)
+    pred, gt = evaluation.center_depth(pred, all_pts), evaluation.center_depth(data.kp3d, all_pts)
+    err = np.linalg.norm(pred - gt, axis=-1)
+    err_flip = np.linalg.norm(pred * np.array([1.0, 1.0, -1.0]) - gt, axis=-1)
+    err = np.where((err_flip.mean(1) < err.mean(1))[:, None], err_flip, err)
+    return dict(mpjpe_visible=float(err[~hidden].mean()), mpjpe_hidden=float(err[hidden].mean()))
+
+
 def baseline_scores(train_data, test_data, protocol: str) -> dict:
     mean_shape = baselines.procrustes_mean_shape(train_data.kp3d)
     preds = baselines.predict(mean_shape, test_data.kp, test_data.vis)
     preds["oracle mean shape"] = baselines.oracle_mean_shape(mean_shape, test_data.kp3d,
                                                              test_data.vis)
-    return {k: evaluation.evaluate(p, test_data, protocol)["mpjpe"] for k, p in preds.items()}
+    out = {k: evaluation.evaluate(p, test_data, protocol)["mpjpe"] for k, p in preds.items()}
+    split = visibility_split(preds["fitted mean shape"], test_data)
+    out.update({f"fitted mean shape, {k[6:]}": v for k, v in split.items()})
+    return out
 
 
 def run() -> dict:
@@ -134,8 +159,10 @@ def run() -> dict:
     replay = FLAGS.steps_per_s > 0
 
     def score(step: int, t: float, wall: float, loss: float) -> dict:
-        res = train.evaluate_split(state.variables, test_data, model_cfg, protocol, eval_fn)
+        pred = train.predict(state.variables, test_data, model_cfg, 1024, eval_fn)
+        res = evaluation.evaluate(pred["shape_image_coord"], test_data, protocol)
         rec = dict(t=t, wall_s=wall, step=step, loss=loss, mpjpe=res["mpjpe"], stress=res["stress"])
+        rec.update(visibility_split(pred["shape_image_coord"], test_data))
         logging.info("%s", rec)
         return rec
 
