@@ -92,6 +92,31 @@ def evaluate(pred: np.ndarray, data: KeypointData, protocol: str = "default") ->
     return out
 
 
+def mpjpe_by_visibility(pred: np.ndarray, data: KeypointData) -> dict:
+    """Mean point error of the visible and of the hidden points, pooled over samples.
+
+    As the ``default``/``up3d`` protocol: mean depth removed over all points, and per
+    sample the prediction or its depth flip, whichever has the lower MPJPE over all
+    points. ``{}`` when no point is hidden. A diagnostic for occluded data: are the
+    errors in what was seen or in what was guessed?
+    """
+    if data.kp3d is None:
+        raise ValueError("this split has no 3D ground truth (kp_loc_3d); cannot compute MPJPE")
+    hidden = data.vis < 0.5
+    if not hidden.any():
+        return {}
+    every = np.ones(hidden.shape)
+    pred = center_depth(np.asarray(pred, np.float64), every)
+    gt = center_depth(data.kp3d.astype(np.float64), every)
+    err = np.linalg.norm(pred - gt, axis=-1)
+    err_flip = np.linalg.norm(pred * np.array([1.0, 1.0, -1.0]) - gt, axis=-1)
+    err = np.where((err_flip.mean(1) < err.mean(1))[:, None], err_flip, err)
+    out = {"mpjpe_hidden": float(err[hidden].mean())}
+    if (~hidden).any():
+        out["mpjpe_visible"] = float(err[~hidden].mean())
+    return out
+
+
 def reprojection_error(kp_reprojected: np.ndarray, data: KeypointData) -> float:
     """Mean 2D distance between reprojected and input visible points (input units).
 

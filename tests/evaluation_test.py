@@ -89,3 +89,20 @@ def test_reprojection_error_counts_visible_points_only():
 def test_table_marks_missing_metrics():
     table = evaluation.format_table({"a": {"mpjpe": 1.0, "reprojection": 2.0}, "b": {"mpjpe": 3.0}})
     assert "reprojection" in table and table.splitlines()[2].rstrip().endswith("-")
+
+
+def test_errors_of_visible_and_hidden_points_are_split_after_the_flip():
+    rng = np.random.default_rng(4)
+    gt = rng.normal(size=(3, 5, 3))
+    vis = np.ones((3, 5))
+    vis[:, [1, 3]] = 0.0
+    data = KeypointData(kp=gt[..., :2] * vis[..., None], vis=vis, kp3d=gt)
+    pred = gt * np.array([1.0, 1.0, -1.0])  # every sample depth-flipped: the flip undoes it
+    pred[:, 1] += [0.3, 0.0, 0.0]  # errors on hidden point 1 only (0.3, then 0 elsewhere)
+    pred[0, 0] += [0.0, 0.4, 0.0]  # and on visible point 0 of sample 0
+    pred = pred + np.array([0.0, 0.0, 2.0])  # a depth offset is removed first
+    out = evaluation.mpjpe_by_visibility(pred, data)
+    # Hidden: 3 samples x points {1, 3} -> 0.3 x 3 over 6; visible: 0.4 once over 9.
+    assert out["mpjpe_hidden"] == pytest.approx(0.3 * 3 / 6)
+    assert out["mpjpe_visible"] == pytest.approx(0.4 / 9)
+    assert evaluation.mpjpe_by_visibility(gt, _data(gt)) == {}

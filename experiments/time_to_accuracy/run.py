@@ -73,7 +73,7 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
         train_data, test_data = humans.make_splits(
             FLAGS.train_poses or h.n_train_poses, h.n_test_poses, h.views_per_pose, cameras=h.cameras,
             max_elevation=h.max_elevation, self_occlusion=FLAGS.self_occlusion,
-            proportions=h.proportions, seed=seed)
+            proportions=h.proportions, dense_points=h.dense_points, seed=seed)
         return train_data, test_data, "up3d"
     path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
     if not os.path.exists(path):
@@ -117,27 +117,13 @@ def _override(c, items, prefix: str = ""):
     return c
 
 
-def visibility_split(pred, data) -> dict:
-    """Flip-resolved point errors of the visible and of the hidden points (datasets with
-    occlusion; depth centred over all points as in the default/up3d protocols)."""
-    hidden = data.vis < 0.5
-    if not hidden.any():
-        return {}
-    all_pts = np.ones_like(data.vis)
-    pred, gt = evaluation.center_depth(pred, all_pts), evaluation.center_depth(data.kp3d, all_pts)
-    err = np.linalg.norm(pred - gt, axis=-1)
-    err_flip = np.linalg.norm(pred * np.array([1.0, 1.0, -1.0]) - gt, axis=-1)
-    err = np.where((err_flip.mean(1) < err.mean(1))[:, None], err_flip, err)
-    return dict(mpjpe_visible=float(err[~hidden].mean()), mpjpe_hidden=float(err[hidden].mean()))
-
-
 def baseline_scores(train_data, test_data, protocol: str) -> dict:
     mean_shape = baselines.procrustes_mean_shape(train_data.kp3d)
     preds = baselines.predict(mean_shape, test_data.kp, test_data.vis)
     preds["oracle mean shape"] = baselines.oracle_mean_shape(mean_shape, test_data.kp3d,
                                                              test_data.vis)
     out = {k: evaluation.evaluate(p, test_data, protocol)["mpjpe"] for k, p in preds.items()}
-    split = visibility_split(preds["fitted mean shape"], test_data)
+    split = evaluation.mpjpe_by_visibility(preds["fitted mean shape"], test_data)
     out.update({f"fitted mean shape, {k[6:]}": v for k, v in split.items()})
     return out
 
@@ -162,7 +148,7 @@ def run() -> dict:
         pred = train.predict(state.variables, test_data, model_cfg, 1024, eval_fn)
         res = evaluation.evaluate(pred["shape_image_coord"], test_data, protocol)
         rec = dict(t=t, wall_s=wall, step=step, loss=loss, mpjpe=res["mpjpe"], stress=res["stress"])
-        rec.update(visibility_split(pred["shape_image_coord"], test_data))
+        rec.update(evaluation.mpjpe_by_visibility(pred["shape_image_coord"], test_data))
         logging.info("%s", rec)
         return rec
 
