@@ -36,5 +36,7 @@ run 0 "${H[@]}" --set data.humans.proportions=0.0 --set loss.w_canonicalization=
 run 1 "${H[@]}" --set data.humans.proportions=0.0 --set model.z_augment_rot_angle=3.14 --tag=_r19_p0_zaug &
 wait
 run 0 "${H[@]}" --set data.humans.proportions=0.0 --set optim.lr=1e-3 --tag=_r19_p0_lr1e3 &
+run 1 --dataset=humans --eval_every_s=40 --steps_per_s=40 --set model.keypoint_rescale=1.9 \
+  --set data.humans.dense_points=100 --tag=_r19_dense100 &
 wait
 rm -rf "$SEQ"
