@@ -7,7 +7,8 @@
 people and poses, each seen by 30 upright cameras (the paper's S-Up3D protocol),
 self-occlusion computed geometrically. ``--config.data.humans.dense_points=300`` adds
 surface points (then set --config.model.n_keypoints=317 and a larger basis, e.g. 30).
-CPU-sized networks and Adam, as configs/synthetic.py; the method is the paper's.
+CPU-sized networks and Adam (configs.default.cpu_recipe) with a 10x canonicalisation
+weight (see below); the method is the paper's.
 """
 
 from configs import default
@@ -20,4 +21,9 @@ def get_config(arg=None):
     c.data.protocol = "up3d"  # mean depth of pred and gt set to 0, as for S-Up3D
     c.model.n_keypoints = 17 + c.data.humans.dense_points
     default.cpu_recipe(c)
+    # A 10x canonicalisation weight: with the default 1 the varied proportions and the
+    # self-occlusion of these bodies drive Phi into a degenerate factorisation (test MPJPE
+    # rises while the losses fall); with 10 it stays better than the rigidly fitted mean
+    # shape (experiments/time_to_accuracy: 0.113 vs 0.125 after 10 CPU minutes, 3 seeds).
+    c.loss.w_canonicalization = 10.0
     return default.apply_variants(c, arg)

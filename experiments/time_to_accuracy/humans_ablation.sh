@@ -23,7 +23,9 @@ wait
 run 0 --dataset="$SEQ/rand_var.npz" --steps_per_s=39.4 &
 # The built-in humans (K=17 calibration, 51 steps/s: 5,620 steps), inputs scaled to unit
 # RMS radius (keypoint_rescale 1.9), without/with self-occlusion, proportions spread 1/0.5/0.
-H=(--dataset=humans --eval_every_s=40 --steps_per_s=51 --set model.keypoint_rescale=1.9)
+# loss.w_canonicalization=1: the ablation ran before configs/humans.py set 10.
+H=(--dataset=humans --eval_every_s=40 --steps_per_s=51 --set model.keypoint_rescale=1.9
+   --set loss.w_canonicalization=1.0)
 run 1 "${H[@]}" --self_occlusion=false --tag=_noocc_r19 &
 wait
 run 0 "${H[@]}" --self_occlusion=false --set data.humans.proportions=0.0 --tag=_noocc_r19_p0 &
@@ -37,6 +39,6 @@ run 1 "${H[@]}" --set data.humans.proportions=0.0 --set model.z_augment_rot_angl
 wait
 run 0 "${H[@]}" --set data.humans.proportions=0.0 --set optim.lr=1e-3 --tag=_r19_p0_lr1e3 &
 run 1 --dataset=humans --eval_every_s=40 --steps_per_s=40 --set model.keypoint_rescale=1.9 \
-  --set data.humans.dense_points=100 --tag=_r19_dense100 &
+  --set loss.w_canonicalization=1.0 --set data.humans.dense_points=100 --tag=_r19_dense100 &
 wait
 rm -rf "$SEQ"

@@ -13,8 +13,9 @@ Datasets: the sequences of ``../shared/data/nrsfm`` by name (drink, face, jaws, 
 stretch, yoga) or any ``.npz``/``.mat`` path (views made with
 ``c3dpo_jax.data.importers.views_from_sequence``: ``--views_per_frame`` random cameras
 per frame, test frames in unseen blocks), or ``humans`` (the built-in synthetic
-humans, configs/humans.py's data). Recipes: ``cpu`` (``configs.default.cpu_recipe``,
-the library default) and ``official`` (the release's h36m-style settings: 1024-wide
+humans, configs/humans.py's data). Recipes: ``cpu`` (the library default:
+``configs.default.cpu_recipe``; for ``humans`` configs/humans.py, which adds a 10x
+canonicalisation weight) and ``official`` (the release's h36m-style settings: 1024-wide
 6-block trunks, SGD lr 1e-3, momentum 0.9, weight decay 5e-4, batch 256).
 
 Replay mode (``--steps_per_s=R --compile_s=C``): instead of the clock, the run stops at
@@ -42,6 +43,7 @@ from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import humans, importers  # noqa: E402
 from c3dpo_jax.state import create_train_state, make_schedule  # noqa: E402
 from configs import default, release  # noqa: E402
+from configs import humans as humans_config  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 NRSFM_DIR = os.path.join(HERE, "..", "..", "..", "shared", "data", "nrsfm")
@@ -85,12 +87,14 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     return train_data, test_data, "default"
 
 
-def recipe_config(recipe: str, n_keypoints: int, protocol: str):
+def recipe_config(recipe: str, dataset: str, n_keypoints: int, protocol: str):
     if recipe == "official":  # the release's h36m settings at the batch size of the issue
         c = release.release_config(
             None, name="experiment", n_keypoints=n_keypoints, basis=10, batch_size=256,
             rescale=1.0, argmin_translation=False, z_augment_angle=0.3925,
             samples_per_epoch=1_249_280, epochs=90, milestones=(60, 80), protocol=protocol)
+    elif dataset == "humans":  # the built-in dataset's own config (cpu_recipe + its loss weight)
+        c = humans_config.get_config()
     else:
         c = default.cpu_recipe(default.get_config())
     c.model.n_keypoints = n_keypoints
@@ -131,7 +135,7 @@ def baseline_scores(train_data, test_data, protocol: str) -> dict:
 def run() -> dict:
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
-    c = recipe_config(FLAGS.recipe, train_data.n_keypoints, protocol)
+    c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
     model_cfg, optim_cfg, steps_per_epoch, _, tx = train._setup(c)
     state = create_train_state(jax.random.key(FLAGS.seed), model_cfg, tx)
     train_key = jax.random.fold_in(jax.random.key(FLAGS.seed), 1)
