@@ -1,6 +1,7 @@
 """Synthetic humans: skeleton order, reproducibility, occlusion, views, proportions."""
 
 import numpy as np
+import pytest
 
 from c3dpo_jax.data import humans
 
@@ -63,3 +64,5 @@ def test_proportions_spread_sets_how_much_bodies_differ():
         axis=0).mean() for p in (0.5, 1.0)]
     assert 0 < spreads[0] < spreads[1]  # relative bone-length spread grows with it
     assert 0.04 < spreads[1] < 0.15  # height +-15% and limbs +-10% (uniform)
+    with pytest.raises(ValueError, match="proportions spread must be in"):
+        humans.make_split(2, views_per_pose=1, proportions=-0.5)

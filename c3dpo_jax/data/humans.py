@@ -159,6 +159,8 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
     Keypoints are the 17 joints followed by ``dense_points`` surface points (the same
     surface parametrisation for every person, so the points correspond).
     """
+    if not 0 <= proportions <= 5:  # beyond ~6.7 some heights would be negative
+        raise ValueError(f"humans proportions spread must be in [0, 5], got {proportions}")
     rng = np.random.default_rng(seed)
     offsets = _proportions(rng, n_poses, proportions)
     lo, hi = _LIMITS[..., 0], _LIMITS[..., 1]
