@@ -40,7 +40,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
-from c3dpo_jax.data import humans, importers  # noqa: E402
+from c3dpo_jax.data import importers, load_splits  # noqa: E402
 from c3dpo_jax.state import create_train_state, make_schedule  # noqa: E402
 from configs import default, release  # noqa: E402
 from configs import humans as humans_config  # noqa: E402
@@ -71,12 +71,12 @@ flags.DEFINE_string("tag", "", "suffix of the recipe name in the results (search
 def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     """(train, test, protocol) for a sequence name/path or ``humans``."""
     if name == "humans":
-        h = _override(default.get_config(), FLAGS.set, "data.humans.").data.humans
-        train_data, test_data = humans.make_splits(
-            FLAGS.train_poses or h.n_train_poses, h.n_test_poses, h.views_per_pose, cameras=h.cameras,
-            max_elevation=h.max_elevation, self_occlusion=FLAGS.self_occlusion,
-            proportions=h.proportions, dense_points=h.dense_points, seed=seed)
-        return train_data, test_data, "up3d"
+        data_cfg = _override(humans_config.get_config(), FLAGS.set, "data.").data
+        data_cfg.humans.n_train_poses = FLAGS.train_poses or data_cfg.humans.n_train_poses
+        data_cfg.humans.self_occlusion = FLAGS.self_occlusion
+        data_cfg.humans.seed = seed
+        train_data, test_data = load_splits(data_cfg)
+        return train_data, test_data, data_cfg.protocol
     path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
     if not os.path.exists(path):
         raise app.UsageError(f"no dataset {name!r}: not a file, not in {NRSFM_DIR}")
@@ -128,7 +128,7 @@ def baseline_scores(train_data, test_data, protocol: str) -> dict:
                                                              test_data.vis)
     out = {k: evaluation.evaluate(p, test_data, protocol)["mpjpe"] for k, p in preds.items()}
     split = evaluation.mpjpe_by_visibility(preds["fitted mean shape"], test_data)
-    out.update({f"fitted mean shape, {k[6:]}": v for k, v in split.items()})
+    out.update({f"fitted mean shape, {k.removeprefix('mpjpe_')}": v for k, v in split.items()})
     return out
 
 
