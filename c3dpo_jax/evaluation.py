@@ -108,9 +108,10 @@ def mpjpe_by_visibility(pred: np.ndarray, data: KeypointData) -> dict:
     every = np.ones(hidden.shape)
     pred = center_depth(np.asarray(pred, np.float64), every)
     gt = center_depth(data.kp3d.astype(np.float64), every)
+    per_sample = mpjpe(pred, gt, every)
+    flip = per_sample["mpjpe_flip"] < per_sample["mpjpe_orig"]
+    pred = np.where(flip[:, None, None], pred * np.array([1.0, 1.0, -1.0]), pred)
     err = np.linalg.norm(pred - gt, axis=-1)
-    err_flip = np.linalg.norm(pred * np.array([1.0, 1.0, -1.0]) - gt, axis=-1)
-    err = np.where((err_flip.mean(1) < err.mean(1))[:, None], err_flip, err)
     out = {"mpjpe_hidden": float(err[hidden].mean())}
     if (~hidden).any():
         out["mpjpe_visible"] = float(err[~hidden].mean())
