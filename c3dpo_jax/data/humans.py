@@ -23,7 +23,7 @@ JOINT_NAMES = ("hip", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle"
                "thorax", "neck", "head", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder",
                "r_elbow", "r_wrist")
 # Rest-pose offset of each joint from its parent (arms hanging down).
-_OFFSETS = np.array([
+REST_OFFSETS = np.array([
     [0, 0, 0], [-0.13, 0, 0], [0, -0.45, 0], [0, -0.42, 0], [0.13, 0, 0], [0, -0.45, 0],
     [0, -0.42, 0], [0, 0.24, 0], [0, 0.26, 0], [0, 0.12, 0.05], [0, 0.14, -0.03],
     [0.18, -0.02, 0], [0, -0.29, 0], [0, -0.26, 0], [-0.18, -0.02, 0], [0, -0.29, 0],
@@ -62,14 +62,21 @@ def _euler(angles: np.ndarray) -> np.ndarray:
     return ry @ rx @ rz
 
 
-def _proportions(rng: np.random.Generator, p: int, spread: float = 1.0) -> np.ndarray:
+def random_proportions(rng: np.random.Generator, p: int, spread: float = 1.0) -> np.ndarray:
     """(P, J, 3) rest offsets: body height (+-15% x spread) and each limb's length
     (+-10% x spread) vary per person; ``spread=0``: everyone has the same body."""
     height = 1 + spread * rng.uniform(-0.15, 0.15, size=(p, 1, 1))
     limb = 1 + spread * rng.uniform(-0.1, 0.1, size=(p, 17, 1))
     for left, right in ((1, 4), (2, 5), (3, 6), (11, 14), (12, 15), (13, 16)):
         limb[:, right] = limb[:, left]  # left and right limbs match
-    return _OFFSETS[None] * height * limb
+    return REST_OFFSETS[None] * height * limb
+
+
+def random_joint_angles(rng: np.random.Generator, p: int) -> np.ndarray:
+    """(P, J, 3) local joint angles within the limits, triangular between them (extreme
+    angles are rarer than middle ones)."""
+    lo, hi = _LIMITS[..., 0], _LIMITS[..., 1]
+    return lo + (hi - lo) * rng.uniform(size=(2, p, 17, 3)).mean(0)
 
 
 def forward_kinematics(offsets: np.ndarray, angles: np.ndarray):
@@ -89,7 +96,7 @@ def forward_kinematics(offsets: np.ndarray, angles: np.ndarray):
 def _surface_template(n: int, seed: int):
     """Fixed surface parametrisation: bone (ends at joint), t along it, angle around it."""
     rng = np.random.default_rng(seed + 7919)
-    length = np.linalg.norm(_OFFSETS, axis=1) * _RADII  # area-like weights per bone
+    length = np.linalg.norm(REST_OFFSETS, axis=1) * _RADII  # area-like weights per bone
     bone = rng.choice(np.arange(1, 17), size=n, p=length[1:] / length[1:].sum())
     return bone, rng.uniform(0.05, 0.95, n), rng.uniform(-np.pi, np.pi, n)
 
@@ -106,7 +113,7 @@ def surface_points(offsets, pos, frames, template):
     """(P, n, 3) points on the capsules, and their outward normals (P, n, 3)."""
     bone, t, phi = template
     parent = np.array(PARENTS)[bone]
-    u0, v0 = zip(*(_perpendiculars(_OFFSETS[b]) for b in bone), strict=True)
+    u0, v0 = zip(*(_perpendiculars(REST_OFFSETS[b]) for b in bone), strict=True)
     rest_normal = np.cos(phi)[:, None] * np.array(u0) + np.sin(phi)[:, None] * np.array(v0)
     normal = np.einsum("pnij,nj->pni", frames[:, parent], rest_normal)
     axis = pos[:, parent] + t[None, :, None] * (pos[:, bone] - pos[:, parent])
@@ -162,10 +169,8 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
     if not 0 <= proportions <= 5:  # beyond ~6.7 some heights would be negative
         raise ValueError(f"humans proportions spread must be in [0, 5], got {proportions}")
     rng = np.random.default_rng(seed)
-    offsets = _proportions(rng, n_poses, proportions)
-    lo, hi = _LIMITS[..., 0], _LIMITS[..., 1]
-    # Triangular between the limits: extreme angles are rarer than middle ones.
-    angles = lo + (hi - lo) * rng.uniform(size=(2, n_poses, 17, 3)).mean(0)
+    offsets = random_proportions(rng, n_poses, proportions)
+    angles = random_joint_angles(rng, n_poses)
     pos, frames = forward_kinematics(offsets, angles)
     points, normals = pos, np.zeros_like(pos)
     if dense_points:

@@ -20,21 +20,16 @@ from c3dpo_jax.data import humans
 
 def main(out_dir: str, n_frames: int = 300, seed: int = 0) -> None:
     rng = np.random.default_rng(seed)
-    lo, hi = humans._LIMITS[..., 0], humans._LIMITS[..., 1]
-
-    def random_angles(n):  # as humans.make_split: triangular between the limits
-        return lo + (hi - lo) * rng.uniform(size=(2, n, 17, 3)).mean(0)
-
     def save(name, offsets, angles):
         pos, _ = humans.forward_kinematics(offsets, angles)
         np.savez(os.path.join(out_dir, f"{name}.npz"), X=np.swapaxes(pos, 1, 2))
 
     os.makedirs(out_dir, exist_ok=True)
-    one_body = np.repeat(humans._OFFSETS[None], n_frames, 0)
-    angles = random_angles(n_frames)
+    one_body = np.repeat(humans.REST_OFFSETS[None], n_frames, 0)
+    angles = humans.random_joint_angles(rng, n_frames)
     save("rand_fixed", one_body, angles)
-    save("rand_var", humans._proportions(rng, n_frames), angles)
-    keys = random_angles(13)
+    save("rand_var", humans.random_proportions(rng, n_frames), angles)
+    keys = humans.random_joint_angles(rng, 13)
     t = np.linspace(0, 12, n_frames, endpoint=False)
     i = t.astype(int)
     f = ((1 - np.cos(np.pi * (t - i))) / 2)[:, None, None]
