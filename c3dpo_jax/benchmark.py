@@ -6,7 +6,8 @@ Glossary: B batch, N keypoints, D shape-basis size, S canonicalisation samples, 
 
 Measures, on random device-resident data of the config's shapes and through the
 same ``make_train_chunk`` path as training: compile time, train steps/s and
-samples/s (median over single-step calls after warm-up), eval samples/s (compiled
+samples/s (median over calls after warm-up, of ``--chunk_steps`` steps each, 1 by
+default; training runs 20-step chunks), eval samples/s (compiled
 ``make_eval_fn``), the analytic dense-layer FLOPs of a step and the fraction of this
 machine's float32 matmul rate (``jnp.dot`` on the same shapes, measured in the same
 run) that the step achieves, and peak memory. Numbers are for reporting, never tests.
@@ -38,7 +39,9 @@ def _define_flags():
         config=config_flags.DEFINE_config_file("config", None, "Config file (FILE[:ARGS]).",
                                                lock_config=True),
         json=flags.DEFINE_string("json", None, "Write the results to this JSON file."),
-        steps=flags.DEFINE_integer("steps", 10, "Timed train steps (after one warm-up call)."),
+        steps=flags.DEFINE_integer("steps", 10, "Timed train calls (after one warm-up call)."),
+        chunk_steps=flags.DEFINE_integer(
+            "chunk_steps", 1, "Train steps per compiled call (lax.scan), as training's chunks."),
         eval_batch=flags.DEFINE_integer("eval_batch", 1024, "Batch size of the eval forward pass."),
         repeats=flags.DEFINE_integer("repeats", 5, "Timed calls for eval and the matmul rate."),
     )
@@ -117,7 +120,8 @@ def _peak_memory_mb() -> dict[str, float]:
     return out
 
 
-def _time_train(config, model_cfg, tx, data, steps: int) -> dict[str, float]:
+def _time_train(config, model_cfg, tx, data, steps: int,
+                chunk_steps: int = 1) -> dict[str, float]:
     batch = config.train.batch_size
     mesh = train.make_mesh() if jax.device_count() > 1 else None
     step_fn = train.make_train_step(model_cfg, train.LossConfig(**config.loss), tx)
@@ -128,7 +132,9 @@ def _time_train(config, model_cfg, tx, data, steps: int) -> dict[str, float]:
         state, data = train.replicate(state, mesh), train.replicate(data, mesh)
     key = jax.random.key(1)
     t0 = time.perf_counter()
-    compiled = chunk.lower(state, data, key, n_steps=1).compile()
+    if chunk_steps < 1:
+        raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
+    compiled = chunk.lower(state, data, key, n_steps=chunk_steps).compile()
     compile_s = time.perf_counter() - t0
     state, _ = compiled(state, data, key)  # warm-up
     jax.block_until_ready(state)
@@ -140,9 +146,9 @@ def _time_train(config, model_cfg, tx, data, steps: int) -> dict[str, float]:
         times.append(time.perf_counter() - t0)
     if not np.all(np.isfinite(np.asarray(metrics["loss"]))):
         raise FloatingPointError("non-finite loss in the benchmark")
-    step_s = statistics.median(times)
-    return {"compile_s": compile_s, "step_s": step_s, "steps_per_s": 1.0 / step_s,
-            "train_samples_per_s": batch / step_s}
+    step_s = statistics.median(times) / chunk_steps
+    return {"compile_s": compile_s, "chunk_steps": chunk_steps, "step_s": step_s,
+            "steps_per_s": 1.0 / step_s, "train_samples_per_s": batch / step_s}
 
 
 def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str, float]:
@@ -157,7 +163,8 @@ def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str
     return {"eval_compile_s": compile_s, "eval_samples_per_s": batch / sec}
 
 
-def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> dict:
+def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
+        chunk_steps: int = 1) -> dict:
     """Runs every measurement for ``config``; returns a flat dict (see the module docstring)."""
     model_cfg, _, _, _, tx = train._setup(config)
     batch = config.train.batch_size
@@ -168,7 +175,7 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> di
            "jax_version": jax.__version__, "platform": platform.platform(),
            "load_avg_1m": os.getloadavg()[0],
            "matmul_precision": model_cfg.matmul_precision}
-    res.update(_time_train(config, model_cfg, tx, data, steps))
+    res.update(_time_train(config, model_cfg, tx, data, steps, chunk_steps))
     variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
                                jax.devices()[0])
     res.update(_time_eval(model_cfg, variables, host, eval_batch, repeats))
@@ -184,7 +191,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5) -> di
 
 
 def format_table(res: dict) -> str:
-    keys = ["config", "device", "n_devices", "batch_size", "compile_s", "steps_per_s",
+    keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
+            "steps_per_s",
             "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
             "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s", "peak_rss_mb",
             "load_avg_1m", "load_avg_1m_end"]
@@ -197,7 +205,8 @@ def format_table(res: dict) -> str:
 
 def main(argv, fl):
     del argv
-    res = run(fl["config"].value, fl["steps"].value, fl["eval_batch"].value, fl["repeats"].value)
+    res = run(fl["config"].value, fl["steps"].value, fl["eval_batch"].value, fl["repeats"].value,
+              fl["chunk_steps"].value)
     print(format_table(res))
     if fl["json"].value:
         with open(fl["json"].value, "w") as f:

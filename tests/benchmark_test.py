@@ -20,7 +20,7 @@ TINY = [
 def test_benchmark_cli_writes_sane_json(tmp_path):
     out = tmp_path / "bench.json"
     cmd = [sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/default.py", *TINY,
-           "--steps=2", "--repeats=2", "--eval_batch=32", f"--json={out}"]
+           "--steps=2", "--chunk_steps=3", "--repeats=2", "--eval_batch=32", f"--json={out}"]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -31,7 +31,24 @@ def test_benchmark_cli_writes_sane_json(tmp_path):
     for k in ("config", "device", "jax_version"):
         assert isinstance(res[k], str) and res[k]
     assert res["batch_size"] == 16
+    assert res["chunk_steps"] == 3
+    # steps_per_s counts training steps, not compiled calls of 3 steps each.
+    assert math.isclose(res["steps_per_s"], 1.0 / res["step_s"])
+    assert math.isclose(res["train_samples_per_s"], 16 * res["steps_per_s"])
     assert "train_samples_per_s" in proc.stdout
+
+
+def test_chunk_steps_below_one_is_a_clear_error():
+    import pytest
+
+    from configs import default
+
+    c = default.get_config()
+    c.model.n_keypoints, c.train.batch_size = 8, 16
+    c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 32
+    c.model.n_layers = c.model.canonicalization_n_layers = 1
+    with pytest.raises(ValueError, match="chunk_steps must be >= 1"):
+        benchmark.run(c, steps=1, eval_batch=16, repeats=1, chunk_steps=0)
 
 
 def test_flops_count_matches_a_hand_count():
