@@ -132,8 +132,6 @@ def _time_train(config, model_cfg, tx, data, steps: int,
         state, data = train.replicate(state, mesh), train.replicate(data, mesh)
     key = jax.random.key(1)
     t0 = time.perf_counter()
-    if chunk_steps < 1:
-        raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
     compiled = chunk.lower(state, data, key, n_steps=chunk_steps).compile()
     compile_s = time.perf_counter() - t0
     state, _ = compiled(state, data, key)  # warm-up
@@ -166,6 +164,8 @@ def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str
 def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
         chunk_steps: int = 1) -> dict:
     """Runs every measurement for ``config``; returns a flat dict (see the module docstring)."""
+    if chunk_steps < 1:
+        raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
     model_cfg, _, _, _, tx = train._setup(config)
     batch = config.train.batch_size
     host = random_data(model_cfg, max(4 * batch, eval_batch))
@@ -192,8 +192,7 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
 
 def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
-            "steps_per_s",
-            "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
+            "steps_per_s", "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
             "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s", "peak_rss_mb",
             "load_avg_1m", "load_avg_1m_end"]
     lines = []
