@@ -192,9 +192,9 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
 
 def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
-            "steps_per_s", "train_samples_per_s", "eval_samples_per_s", "flops_per_step", "matmul_gflops",
-            "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s", "peak_rss_mb",
-            "load_avg_1m", "load_avg_1m_end"]
+            "steps_per_s", "train_samples_per_s", "eval_samples_per_s", "flops_per_step",
+            "matmul_gflops", "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s",
+            "peak_rss_mb", "load_avg_1m", "load_avg_1m_end"]
     lines = []
     for k in keys:
         v = res.get(k)
