@@ -43,10 +43,7 @@ def test_chunk_steps_below_one_is_a_clear_error():
 
     from configs import default
 
-    c = default.get_config()
-    c.model.n_keypoints, c.train.batch_size = 8, 16
-    c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 32
-    c.model.n_layers = c.model.canonicalization_n_layers = 1
+    c = default.get_config("smoke")  # the configs' own tiny variant
     with pytest.raises(ValueError, match="chunk_steps must be >= 1"):
         benchmark.run(c, steps=1, eval_batch=16, repeats=1, chunk_steps=0)
 
