@@ -14,8 +14,10 @@ Flattening follows the release so that converted weights line up: Phi's input is
 ``(3, N)`` (all x, then all y, then all z).
 """
 
+import functools
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -37,9 +39,20 @@ def _torch_uniform(fan_in: int) -> nn.initializers.Initializer:
     return init
 
 
-def _dense(features: int, fan_in: int, name: str) -> nn.Dense:
+# float32 accumulation and output for reduced-precision operands.
+_dot_f32 = functools.partial(jax.lax.dot_general, preferred_element_type=jnp.float32)
+
+
+def _dense(features: int, fan_in: int, name: str, matmul_dtype: Any = None) -> nn.Dense:
+    """Dense layer; with ``matmul_dtype`` (e.g. bfloat16) the input and the float32
+    kernel are cast to it for the product, which accumulates and returns float32."""
     return nn.Dense(
-        features, kernel_init=_torch_uniform(fan_in), bias_init=_torch_uniform(fan_in), name=name
+        features,
+        kernel_init=_torch_uniform(fan_in),
+        bias_init=_torch_uniform(fan_in),
+        dtype=matmul_dtype,
+        dot_general=_dot_f32 if matmul_dtype is not None else None,
+        name=name,
     )
 
 
@@ -60,15 +73,16 @@ class ResBlock(nn.Module):
 
     features: int
     axis_name: AxisName = "batch"
+    matmul_dtype: Any = None
 
     @nn.compact
     def __call__(self, x: Float[Array, "*B H"], train: bool) -> Float[Array, "*B H"]:
-        inner = self.features // 4
-        y = _dense(inner, x.shape[-1], "conv1")(x)
+        inner, dt = self.features // 4, self.matmul_dtype
+        y = _dense(inner, x.shape[-1], "conv1", dt)(x)
         y = nn.relu(_batch_norm(train, self.axis_name, "bn1")(y))
-        y = _dense(inner, inner, "conv2")(y)
+        y = _dense(inner, inner, "conv2", dt)(y)
         y = nn.relu(_batch_norm(train, self.axis_name, "bn2")(y))
-        y = _dense(self.features, inner, "conv3")(y)
+        y = _dense(self.features, inner, "conv3", dt)(y)
         y = _batch_norm(train, self.axis_name, "bn3")(y)
         if x.shape[-1] == self.features:
             y = y + x
@@ -81,13 +95,15 @@ class Trunk(nn.Module):
     features: int
     n_layers: int
     axis_name: AxisName = "batch"
+    matmul_dtype: Any = None
 
     @nn.compact
     def __call__(self, x: Float[Array, "*B F"], train: bool) -> Float[Array, "*B H"]:
-        y = _dense(self.features, x.shape[-1], "conv1")(x)
+        y = _dense(self.features, x.shape[-1], "conv1", self.matmul_dtype)(x)
         y = nn.relu(_batch_norm(train, self.axis_name, "bn1")(y))
         for i in range(self.n_layers):
-            y = ResBlock(self.features, self.axis_name, name=f"block{i + 1}")(y, train)
+            block = ResBlock(self.features, self.axis_name, self.matmul_dtype, name=f"block{i + 1}")
+            y = block(y, train)
         return y
 
 
@@ -102,6 +118,8 @@ class C3DPONet(nn.Module):
       camera_translation, camera_scale: optional heads of Phi.
       weight_init_std: std of the Gaussian init of the heads (biases zero).
       phi_axis_name, psi_axis_name: vmapped axes BatchNorm reduces over.
+      matmul_dtype: operand dtype of the trunks' dense products (None: float32); the
+        heads and the shape layer stay float32.
     """
 
     n_keypoints: int
@@ -115,6 +133,7 @@ class C3DPONet(nn.Module):
     weight_init_std: float = 0.01
     phi_axis_name: AxisName = "batch"
     psi_axis_name: AxisName = ("batch", "sample")
+    matmul_dtype: Any = None
 
     def setup(self):
         n, d = self.n_keypoints, self.shape_basis_size
@@ -122,7 +141,9 @@ class C3DPONet(nn.Module):
             kernel_init=nn.initializers.normal(self.weight_init_std),
             bias_init=nn.initializers.zeros,
         )
-        self.phi_trunk = Trunk(self.n_fully_connected, self.n_layers, self.phi_axis_name)
+        self.phi_trunk = Trunk(
+            self.n_fully_connected, self.n_layers, self.phi_axis_name, self.matmul_dtype
+        )
         self.alpha_layer = nn.Dense(d, **head)
         self.rot_layer = nn.Dense(3, **head)
         if self.camera_translation:
@@ -130,7 +151,9 @@ class C3DPONet(nn.Module):
         if self.camera_scale:
             self.scale_layer = nn.Dense(1, **head)
         self.shape_layer = nn.Dense(3 * n, **head)
-        self.psi_trunk = Trunk(self.psi_n_fully_connected, self.psi_n_layers, self.psi_axis_name)
+        self.psi_trunk = Trunk(
+            self.psi_n_fully_connected, self.psi_n_layers, self.psi_axis_name, self.matmul_dtype
+        )
         self.alpha_layer_psi = nn.Dense(d, **head)
 
     def phi(self, kp_norm: Kp2, vis: Vis, train: bool) -> dict[str, Array]:

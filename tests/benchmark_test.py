@@ -74,6 +74,13 @@ def test_matmul_precision_option_runs_and_stays_close():
     ref = model.forward_eval(variables, *args, cfg=cfg)["shape_canonical"]
     low = dataclasses.replace(cfg, matmul_precision="bfloat16")
     out = model.forward_eval(variables, *args, cfg=low)["shape_canonical"]
+    # The trunks' products take bfloat16 operands on every backend (CPU included), so
+    # the result moves, a little; the output and the parameters stay float32.
+    assert out.dtype == ref.dtype == np.float32
+    assert not np.array_equal(out, ref)
     np.testing.assert_allclose(out, ref, rtol=0.05, atol=1e-3)
+    jaxpr = str(jax.make_jaxpr(lambda v: model.forward_eval(v, *args, cfg=low))(variables))
+    assert "bf16" in jaxpr and "bf16" not in str(jax.make_jaxpr(
+        lambda v: model.forward_eval(v, *args, cfg=cfg))(variables))
     with pytest.raises(ValueError, match="matmul_precision"):
         model.forward_eval(variables, *args, cfg=dataclasses.replace(cfg, matmul_precision="x"))
