@@ -18,10 +18,38 @@ BUDGET=${BUDGET:-600}
 CAL=$HERE/results/calibration
 mkdir -p "$CAL" "$HERE/logs"
 
+reuse_calibration() {  # D R: copy R's calibration of another sequence with D's number of points
+  "$PY" - "$CAL" "$1" "$2" "$NRSFM" <<'PYEOF'
+import glob, json, os, sys
+
+from c3dpo_jax.data import importers
+
+cal, dataset, recipe, nrsfm = sys.argv[1:]
+path = dataset if os.path.exists(dataset) else os.path.join(nrsfm, f"{dataset}.npz")
+if dataset == "humans" or not os.path.exists(path):
+    sys.exit(1)  # humans: K depends on its config; calibrate it itself
+k = importers.load_sequence(path).shape[1]
+for f in sorted(glob.glob(os.path.join(cal, f"*__{recipe}__s0.json"))):
+    r = json.load(open(f))
+    if r["n_keypoints"] == k and "calibrated_on" not in r and r["dataset"] != "humans":
+        out = dict(r, dataset=dataset, calibrated_on=r["dataset"])
+        json.dump(out, open(os.path.join(cal, f"{dataset}__{recipe}__s0.json"), "w"), indent=1)
+        print(f"calibration of {dataset} / {recipe}: reusing {r['dataset']}'s (K = {k})")
+        sys.exit(0)
+sys.exit(1)
+PYEOF
+}
+
+# The rate depends only on the recipe and the number of points K, so a sequence whose K
+# matches an already calibrated one reuses that file (marked ``calibrated_on``;
+# REUSE_CALIBRATION=0 calibrates every dataset itself).
+NRSFM=${NRSFM:-$HERE/../../../shared/data/nrsfm}
 for d in $DATASETS; do
   for r in $RECIPES; do
     f=$CAL/${d}__${r}__s0.json
-    [ -f "$f" ] || "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --budget_s=60 \
+    [ -f "$f" ] && continue
+    [ "${REUSE_CALIBRATION:-1}" = 1 ] && reuse_calibration "$d" "$r" && continue
+    "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --budget_s=60 \
       --eval_every_s=60 --out_dir="$CAL" > "$HERE/logs/cal_${d}_${r}.log" 2>&1
   done
 done
