@@ -17,7 +17,9 @@ import numpy as np
 
 
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) rotations minimising ||R src_m - dst_m||, no reflections (dst (N, 3) or (M, N, 3))."""
+    """(M, 3, 3) rotations minimising ||R src_m - dst_m||, no reflections.
+
+    ``src`` is (M, N, 3); ``dst`` is (N, 3) or (M, N, 3)."""
     h = np.einsum("mni,mnj->mij", src, np.broadcast_to(dst, src.shape))
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(np.einsum("mij,mjk->mik", u, vt)))

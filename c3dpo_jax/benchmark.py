@@ -32,6 +32,7 @@ from ml_collections import config_flags
 from c3dpo_jax import model, train
 from c3dpo_jax.state import create_train_state
 
+
 def _define_flags():
     """Defined only when run as a script, so importing this module next to
     ``c3dpo_jax.main`` (tests, notebooks) does not clash on ``--config``."""

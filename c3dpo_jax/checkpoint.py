@@ -22,7 +22,9 @@ def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.Che
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1), create=True
     )
-    return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options)
+    return ocp.CheckpointManager(
+        os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options
+    )
 
 
 def restore_or_init(manager: ocp.CheckpointManager, state):

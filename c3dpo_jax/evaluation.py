@@ -127,7 +127,9 @@ def reprojection_error(kp_reprojected: np.ndarray, data: KeypointData) -> float:
     return float((dist * data.vis).sum() / max(data.vis.sum(), 1.0))
 
 
-def format_table(rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection")) -> str:
+def format_table(
+    rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection")
+) -> str:
     """Plain-text table: one row per method, one column per metric ("-" where absent)."""
     keys = [k for k in keys if any(k in res for res in rows.values())]
     width = max(len(name) for name in rows) + 2

@@ -14,7 +14,7 @@ from jaxtyping import Array, Float
 from c3dpo_jax.types import Kp2, Kp3, Vis
 
 
-def masked_mean(x: Float[Array, "N *C"], mask: Float[Array, " N"]) -> Float[Array, "*C"]:
+def masked_mean(x: Float[Array, " N *C"], mask: Float[Array, " N"]) -> Float[Array, "*C"]:
     """Mean of the rows of ``x`` where ``mask`` is 1 (0 when no row is selected)."""
     m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
     return jnp.sum(x * m, axis=0) / jnp.maximum(jnp.sum(mask), 1.0)

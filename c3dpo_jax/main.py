@@ -13,9 +13,13 @@ from ml_collections import config_flags
 
 from c3dpo_jax import evaluation, train
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file (FILE[:ARGS]).", lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Config file (FILE[:ARGS]).", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Directory for checkpoints, metrics and results.")
-_MODE = flags.DEFINE_enum("mode", "train", ["train", "eval"], "Train then evaluate, or evaluate only.")
+_MODE = flags.DEFINE_enum(
+    "mode", "train", ["train", "eval"], "Train then evaluate, or evaluate only."
+)
 flags.mark_flags_as_required(["config", "workdir"])
 
 

@@ -227,7 +227,9 @@ def _forward_train(
     repro = dist_sq if cfg.squared_reprojection_loss else huber(dist_sq, cfg.huber_scaling)
     terms = {"repro": repro, "canon": jnp.zeros((0,))}
     if cfg.canonicalization:
-        terms["canon"], stats = _canonicalisation(net, params, stats, x_canon, class_mask, k_canon, cfg)
+        terms["canon"], stats = _canonicalisation(
+            net, params, stats, x_canon, class_mask, k_canon, cfg
+        )
     return terms, stats
 
 

@@ -34,7 +34,13 @@ from tqdm.auto import tqdm
 
 from c3dpo_jax import baselines, checkpoint, evaluation, losses, model
 from c3dpo_jax.data import KeypointData, load_splits
-from c3dpo_jax.state import OptimConfig, TrainState, create_train_state, make_optimizer, make_schedule
+from c3dpo_jax.state import (
+    OptimConfig,
+    TrainState,
+    create_train_state,
+    make_optimizer,
+    make_schedule,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,10 +64,16 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             axis_name="batch",
         )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
         stats = jax.tree.map(lambda a: a[0], stats)
-        l_repro = losses.reprojection(terms["repro"], batch["vis"], model_cfg.reprojection_normalization)
+        l_repro = losses.reprojection(
+            terms["repro"], batch["vis"], model_cfg.reprojection_normalization
+        )
         l_canon = losses.canonicalisation(terms["canon"])
         objective = loss_cfg.w_reprojection * l_repro + loss_cfg.w_canonicalization * l_canon
-        metrics = {"loss": objective, "loss/reprojection": l_repro, "loss/canonicalisation": l_canon}
+        metrics = {
+            "loss": objective,
+            "loss/reprojection": l_repro,
+            "loss/canonicalisation": l_canon,
+        }
         return objective, (stats, metrics)
 
     return loss_fn
@@ -240,8 +252,12 @@ class _MetricsWriter:
         with open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
         self.pbar.update(n)
-        self.pbar.set_postfix(loss=f"{record['loss']:.4f}", repro=f"{record['loss/reprojection']:.4f}",
-                              canon=f"{record['loss/canonicalisation']:.4f}", refresh=False)
+        self.pbar.set_postfix(
+            loss=f"{record['loss']:.4f}",
+            repro=f"{record['loss/reprojection']:.4f}",
+            canon=f"{record['loss/canonicalisation']:.4f}",
+            refresh=False,
+        )
         logging.log_every_n_seconds(logging.INFO, "step %d: %s", 30, record["step"], record)
 
 
@@ -318,7 +334,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
                 disable=not config.train.progress_bar, desc="train")
     writer = _MetricsWriter(workdir, pbar)
     while step < total:
-        stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every, eval_every))
+        stop = _next_stop(
+            step, total, (config.train.log_every, config.train.ckpt_every, eval_every)
+        )
         state, metrics = chunk(state, data, train_key, n_steps=stop - step)
         writer.push(step, metrics)
         step = stop

@@ -1,7 +1,8 @@
 """Human3.6M with Stacked-Hourglass 2D detections. Release pretrained: MPJPE 145.02, stress 84.69.
 
   python -m c3dpo_jax.main --config=configs/h36m_hourglass.py --workdir=runs/h36m_hourglass \
-      --config.data.train_path=h36m_hourglass_train.json --config.data.test_path=h36m_hourglass_val.json
+      --config.data.train_path=h36m_hourglass_train.json \
+      --config.data.test_path=h36m_hourglass_val.json
 
 Official hyperparameters (release cfgs, see configs/release.py). `:smoke` runs on
 generated data with K=17 so it works without the files.

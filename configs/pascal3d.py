@@ -1,4 +1,6 @@
-"""PASCAL3D+, 12 classes in one 124-keypoint layout, class-balanced sampling. Release pretrained: MPJPE 36.64, stress 31.08.
+"""PASCAL3D+, 12 classes in one 124-keypoint layout, class-balanced sampling.
+
+Release pretrained: MPJPE 36.64, stress 31.08.
 
   python -m c3dpo_jax.main --config=configs/pascal3d.py --workdir=runs/pascal3d \
       --config.data.train_path=pascal3d_train.json --config.data.test_path=pascal3d_val.json

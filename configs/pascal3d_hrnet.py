@@ -1,7 +1,8 @@
 """PASCAL3D+ with HRNet 2D detections. Release pretrained: MPJPE 56.89, stress 40.18.
 
   python -m c3dpo_jax.main --config=configs/pascal3d_hrnet.py --workdir=runs/pascal3d_hrnet \
-      --config.data.train_path=pascal3d_hrnet_train.json --config.data.test_path=pascal3d_hrnet_val.json
+      --config.data.train_path=pascal3d_hrnet_train.json \
+      --config.data.test_path=pascal3d_hrnet_val.json
 
 Official hyperparameters (release cfgs, see configs/release.py). `:smoke` runs on
 generated data with K=124 so it works without the files.

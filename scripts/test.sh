@@ -3,4 +3,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+.venv/bin/ruff check --quiet .  # lint: pyproject's [tool.ruff] rules (line length 100, imports)
 exec .venv/bin/python -m pytest "$@"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from c3dpo_jax import convert, model
-from c3dpo_jax.reconstruct import load, reconstruct, save_workdir
 from c3dpo_jax.networks import C3DPONet
+from c3dpo_jax.reconstruct import load, reconstruct, save_workdir
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FIXTURE = os.path.join(ROOT, "tests", "testdata", "parity_small.npz")

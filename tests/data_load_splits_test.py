@@ -4,9 +4,8 @@ import pytest
 
 from c3dpo_jax.data import download, load_splits
 from configs import categories as categories_cfg
-from configs import default
+from configs import default, own_json
 from configs import humans as humans_cfg
-from configs import own_json
 
 
 def test_builtin_sources_match_their_configs():

@@ -3,8 +3,8 @@
 import contextlib
 import functools
 import hashlib
-import importlib
 import http.server
+import importlib
 import os
 import socket
 import threading

@@ -36,7 +36,9 @@ def test_mpjpe_flip_and_stress_match_brute_force():
     np.testing.assert_allclose(res["mpjpe_flip"], np.mean(flip))
     np.testing.assert_allclose(res["mpjpe"], np.mean(np.minimum(orig, flip)))
     assert res["mpjpe"] < res["mpjpe_orig"]  # the flipped prediction is the better one
-    np.testing.assert_allclose(res["stress"], np.mean([_loop_stress(p, g) for p, g in zip(pred_c, gt_c)]))
+    np.testing.assert_allclose(
+        res["stress"], np.mean([_loop_stress(p, g) for p, g in zip(pred_c, gt_c)])
+    )
 
 
 def test_known_answer_depth_offset_is_ignored_and_shift_is_not():
@@ -53,7 +55,9 @@ def test_h36m_protocol_is_root_relative_scaled_and_averaged_per_action():
     gt = np.zeros((3, 2, 3))
     gt[:, 1] = [1, 0, 0]
     pred = gt.copy()
-    pred[:, 1, 0] += np.array([0.1, 0.2, 0.6])  # per-sample errors 0.05, 0.1, 0.3 (mean over 2 joints)
+    pred[:, 1, 0] += np.array(
+        [0.1, 0.2, 0.6]
+    )  # per-sample errors 0.05, 0.1, 0.3 (mean over 2 joints)
     pred += 5.0  # a global offset: removed by the root alignment
     data = _data(gt, scale=np.array([10.0, 10.0, 10.0]), group=np.array([0, 0, 1]),
                  group_names=("Walking", "Sitting"))
@@ -68,7 +72,9 @@ def test_pascal3d_protocol_masks_points_outside_the_class():
     gt[0, 1] = [1, 0, 0]
     pred = gt.copy()
     pred[0, 2] = [100, 100, 100]  # garbage on a point of another class
-    data = _data(gt, class_mask=np.array([[1.0, 1.0, 0.0]]), group=np.array([0]), group_names=("car",))
+    data = _data(
+        gt, class_mask=np.array([[1.0, 1.0, 0.0]]), group=np.array([0]), group_names=("car",)
+    )
     assert evaluation.evaluate(pred, data, "pascal3d")["mpjpe"] == pytest.approx(0.0)
 
 

@@ -24,7 +24,9 @@ def test_masked_mean_ignores_invisible_points():
 @pytest.mark.parametrize("norm_type", ["to_mean", "to_root"])
 def test_normalise_then_unnormalise_is_the_identity(norm_type):
     kp, vis = _kp()
-    norm, centre = geometry.normalise_keypoints(kp, vis, norm_type=norm_type, rescale=0.01, root_joint=1)
+    norm, centre = geometry.normalise_keypoints(
+        kp, vis, norm_type=norm_type, rescale=0.01, root_joint=1
+    )
     np.testing.assert_allclose(geometry.unnormalise_keypoints(norm, centre, 0.01), kp, rtol=1e-5)
     anchor = geometry.masked_mean(norm, vis) if norm_type == "to_mean" else norm[1]
     np.testing.assert_allclose(anchor, 0.0, atol=1e-3)

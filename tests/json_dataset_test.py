@@ -122,7 +122,9 @@ def test_cache_is_written_used_and_rebuilt_when_stale_or_corrupt(tmp_path, monke
     assert cache.exists()
     calls = []
     real_parse = json_dataset.parse
-    monkeypatch.setattr(json_dataset, "parse", lambda *a, **k: calls.append(1) or real_parse(*a, **k))
+    monkeypatch.setattr(
+        json_dataset, "parse", lambda *a, **k: calls.append(1) or real_parse(*a, **k)
+    )
     cached = json_dataset.load(str(path))
     assert calls == [] and cached.group_names == first.group_names
     np.testing.assert_array_equal(cached.kp, first.kp)

@@ -46,7 +46,11 @@ def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
     cfg = dataclasses.replace(CFG, z_equivariance=False, z_augment=False)
     shape = synthetic.shape_model(8, 2, 0.3, seed=0)[0]
     variables = _perfect_variables(cfg, shape)
-    vis = jnp.asarray(np.random.default_rng(1).uniform(size=(4, 8)) > 0.3, jnp.float32).at[:, :3].set(1)
+    vis = (
+        jnp.asarray(np.random.default_rng(1).uniform(size=(4, 8)) > 0.3, jnp.float32)
+        .at[:, :3]
+        .set(1)
+    )
     kp = jnp.broadcast_to(jnp.asarray(shape[:, :2]) + 5.0, (4, 8, 2)) * vis[..., None]
     batch = {"kp": kp, "vis": vis, "class_mask": jnp.ones((4, 8))}
     terms, _ = _train_terms(cfg, variables, batch, key)
@@ -81,8 +85,12 @@ def test_eval_keeps_visible_input_points_and_is_batch_independent():
     outs = jax.vmap(partial(model.forward_eval, variables, cfg=CFG), in_axes=(0, 0, 0, None))(
         batch["kp"], batch["vis"], batch["class_mask"], None)
     vis = data.vis > 0
-    np.testing.assert_allclose(np.asarray(outs["shape_image_coord"])[..., :2][vis], data.kp[vis], atol=1e-5)
-    single = model.forward_eval(variables, batch["kp"][2], batch["vis"][2], batch["class_mask"][2], None, CFG)
+    np.testing.assert_allclose(
+        np.asarray(outs["shape_image_coord"])[..., :2][vis], data.kp[vis], atol=1e-5
+    )
+    single = model.forward_eval(
+        variables, batch["kp"][2], batch["vis"][2], batch["class_mask"][2], None, CFG
+    )
     np.testing.assert_allclose(single["shape_image_coord"], outs["shape_image_coord"][2], atol=1e-5)
     assert outs["rotation"].shape == (6, 3, 3) and outs["alpha"].shape == (6, 3)
 

@@ -2,7 +2,6 @@
 
 import flax.linen as nn
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from c3dpo_jax import model, networks
@@ -29,7 +28,9 @@ def test_parameter_count_matches_the_architecture():
 
 
 def test_official_sized_network_has_the_expected_layers():
-    cfg = model.ModelConfig(n_keypoints=17, shape_basis_size=10, camera_translation=True, camera_scale=True)
+    cfg = model.ModelConfig(
+        n_keypoints=17, shape_basis_size=10, camera_translation=True, camera_scale=True
+    )
     params = model.init_variables(jax.random.key(0), cfg)["params"]
     shapes = dict(networks.param_shapes(params))
     assert shapes["['phi_trunk']['conv1']['kernel']"] == (51, 1024)

@@ -11,7 +11,12 @@ import pytest
 import c3dpo_jax
 from c3dpo_jax import model
 from c3dpo_jax.reconstruct import (
-    C3DPOParams, Reconstruction, _reconstruct_batch, load, reconstruct, save_workdir,
+    C3DPOParams,
+    Reconstruction,
+    _reconstruct_batch,
+    load,
+    reconstruct,
+    save_workdir,
 )
 
 CFG = model.ModelConfig(n_keypoints=7, shape_basis_size=3, n_fully_connected=16, n_layers=1,

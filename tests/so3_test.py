@@ -46,7 +46,9 @@ def test_convention_rotates_column_vectors_counter_clockwise():
     np.testing.assert_allclose(r @ np.array([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0], atol=1e-6)
 
 
-@pytest.mark.parametrize("w0", [np.zeros(3), np.array([1e-5, -2e-5, 0.0]), np.array([0.3, -0.8, 1.1])])
+@pytest.mark.parametrize(
+    "w0", [np.zeros(3), np.array([1e-5, -2e-5, 0.0]), np.array([0.3, -0.8, 1.1])]
+)
 def test_exp_map_gradients_are_finite_and_match_finite_differences(w0):
     probe = np.random.default_rng(3).normal(size=(3, 3))
 
@@ -56,7 +58,9 @@ def test_exp_map_gradients_are_finite_and_match_finite_differences(w0):
     with jax.enable_x64(True):
         g = np.asarray(jax.grad(f)(jnp.asarray(w0, jnp.float64)))
         h = 1e-6
-        fd = [(f(jnp.asarray(w0 + h * e)) - f(jnp.asarray(w0 - h * e))) / (2 * h) for e in np.eye(3)]
+        fd = [
+            (f(jnp.asarray(w0 + h * e)) - f(jnp.asarray(w0 - h * e))) / (2 * h) for e in np.eye(3)
+        ]
     assert np.all(np.isfinite(g))
     np.testing.assert_allclose(g, np.asarray(fd), atol=1e-7)
 
@@ -79,7 +83,9 @@ def test_log_map_inverts_exp_map_and_matches_scipy(angle):
 def test_haar_rotations_have_the_uniform_angle_distribution(key):
     rots = jax.vmap(so3.random_rotation)(jax.random.split(key, 20000))
     rots = np.asarray(rots, np.float64)
-    np.testing.assert_allclose(np.einsum("mij,mkj->mik", rots, rots), np.broadcast_to(np.eye(3), rots.shape), atol=1e-5)
+    np.testing.assert_allclose(
+        np.einsum("mij,mkj->mik", rots, rots), np.broadcast_to(np.eye(3), rots.shape), atol=1e-5
+    )
     angles = np.linalg.norm(Rotation.from_matrix(rots).as_rotvec(), axis=1)
     # Haar: P(angle <= t) = (t - sin t) / pi.
     for t in (0.5, 1.5, 2.5):

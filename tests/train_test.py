@@ -48,7 +48,11 @@ def test_one_step_is_deterministic_and_matches_golden_values(setup):
     np.testing.assert_allclose(float(m1["grad_norm"]), GOLDEN["grad_norm"], rtol=1e-4)
 
 
-GOLDEN = {"repro": 0.8189995884895325, "canon": 0.00014182389713823795, "grad_norm": 0.05430825799703598}
+GOLDEN = {
+    "repro": 0.8189995884895325,
+    "canon": 0.00014182389713823795,
+    "grad_norm": 0.05430825799703598,
+}
 
 
 def test_train_step_traces_once_for_repeated_calls(setup):
@@ -94,7 +98,9 @@ def test_sgd_matches_the_pytorch_update_with_weight_decay_in_the_gradient():
 
 
 def test_learning_rate_milestones_are_given_in_epochs():
-    sched = make_schedule(OptimConfig(lr=1e-3, lr_milestones=(2, 3), gamma=0.1), steps_per_epoch=100)
+    sched = make_schedule(
+        OptimConfig(lr=1e-3, lr_milestones=(2, 3), gamma=0.1), steps_per_epoch=100
+    )
     np.testing.assert_allclose([sched(199), sched(200), sched(299), sched(300)],
                                [1e-3, 1e-4, 1e-4, 1e-5], rtol=1e-6)
 
@@ -160,14 +166,25 @@ def test_every_variant_and_perspective_projection_train(variant, tmp_path):
         cfg = dataclasses.replace(cfg, projection_type="perspective", camera_translation=True,
                                   depth_offset=6.0, argmin_translation=False)
         data_kw = {"perspective": True}
-    data = synthetic.make_split(512, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.1,
-                                noise=0.0, shape_seed=0, seed=1, **{"perspective": False, **data_kw})
+    data = synthetic.make_split(
+        512,
+        n_keypoints=8,
+        n_modes=2,
+        deformation=0.3,
+        occlusion=0.1,
+        noise=0.0,
+        shape_seed=0,
+        seed=1,
+        **{"perspective": False, **data_kw},
+    )
     assert (data.intrinsics is not None) == (variant == "perspective")
     tx = make_optimizer(OptimConfig(optimizer="adam", lr=1e-3, weight_decay=0.0), 100)
     state = create_train_state(jax.random.key(0), cfg, tx)
     chunk = jax.jit(train.make_train_chunk(train.make_train_step(cfg, train.LossConfig(), tx), 32),
                     static_argnames="n_steps")
-    state, metrics = chunk(state, jax.device_put(data.model_inputs()), jax.random.key(1), n_steps=150)
+    state, metrics = chunk(
+        state, jax.device_put(data.model_inputs()), jax.random.key(1), n_steps=150
+    )
     repro = np.asarray(metrics["loss/reprojection"])
     assert np.all(np.isfinite(repro))
     assert repro[-20:].mean() < 0.7 * repro[:20].mean()

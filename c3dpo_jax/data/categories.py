@@ -70,9 +70,16 @@ CLASSES = {"aeroplane": (_aeroplane, 8), "bottle": (_bottle, 7), "car": (_car, 1
            "chair": (_chair, 10), "diningtable": (_table, 8)}
 
 
-def make_split(n_samples: int, *, classes=tuple(CLASSES), variation: float | int = 1.0,
-               occlusion: float | int = 0.1, noise: float | int = 0.0, max_elevation: float | int = 0.6,
-               seed: int = 0) -> KeypointData:
+def make_split(
+    n_samples: int,
+    *,
+    classes=tuple(CLASSES),
+    variation: float | int = 1.0,
+    occlusion: float | int = 0.1,
+    noise: float | int = 0.0,
+    max_elevation: float | int = 0.6,
+    seed: int = 0,
+) -> KeypointData:
     """``n_samples`` views, classes drawn uniformly; keypoints packed class after class."""
     rng = np.random.default_rng(seed)
     counts = np.array([CLASSES[c][1] for c in classes])
@@ -102,9 +109,16 @@ def make_split(n_samples: int, *, classes=tuple(CLASSES), variation: float | int
         group_names=tuple(classes), name="categories")
 
 
-def make_splits(n_train: int = 5000, n_test: int = 1000, classes=tuple(CLASSES),
-                variation: float | int = 1.0, occlusion: float | int = 0.1, noise: float | int = 0.0,
-                max_elevation: float | int = 0.6, seed: int = 0) -> tuple[KeypointData, KeypointData]:
+def make_splits(
+    n_train: int = 5000,
+    n_test: int = 1000,
+    classes=tuple(CLASSES),
+    variation: float | int = 1.0,
+    occlusion: float | int = 0.1,
+    noise: float | int = 0.0,
+    max_elevation: float | int = 0.6,
+    seed: int = 0,
+) -> tuple[KeypointData, KeypointData]:
     """Train and test splits (different instances and views); reproducible from ``seed``."""
     common = dict(classes=tuple(classes), variation=variation, occlusion=occlusion,
                   noise=noise, max_elevation=max_elevation)

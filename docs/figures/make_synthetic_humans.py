@@ -22,7 +22,7 @@ def main():
         for v in range(3):
             i = p * 3 + v
             ax = fig.add_subplot(3, 5, v * 5 + p + 1)
-            kp, vis, x3 = data.kp[i], data.vis[i], data.kp3d[i]
+            vis, x3 = data.vis[i], data.kp3d[i]
             ax.scatter(x3[17:, 0], x3[17:, 1], s=3, c=np.where(vis[17:] > 0, "tab:gray", "0.85"))
             for a, b in SKELETON:
                 ax.plot(x3[[a, b], 0], x3[[a, b], 1], c="tab:red" if b in LEFT else "tab:blue")

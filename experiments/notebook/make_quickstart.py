@@ -20,11 +20,11 @@ CELLS = [
     ),
     new_code_cell(
         "import tempfile\n"
+        "\n"
         "import numpy as np\n"
         "from IPython.display import Image, display\n"
         "\n"
-        "from c3dpo_jax import load, reconstruct\n"
-        "from c3dpo_jax import evaluation, train, visualise\n"
+        "from c3dpo_jax import evaluation, load, reconstruct, train, visualise\n"
         "from c3dpo_jax.data import load_splits, synthetic\n"
         "from configs import synthetic as synthetic_config"
     ),

@@ -178,14 +178,24 @@ def run() -> dict:
             break
     steady = (step - n_chunk) / max(t_train - first_chunk_s, 1e-9)
     return dict(
-        dataset=os.path.splitext(os.path.basename(FLAGS.dataset))[0], recipe=FLAGS.recipe + FLAGS.tag, seed=FLAGS.seed,
-        data_seed=FLAGS.data_seed, mode="replay" if replay else "wall", budget_s=FLAGS.budget_s,
+        dataset=os.path.splitext(os.path.basename(FLAGS.dataset))[0],
+        recipe=FLAGS.recipe + FLAGS.tag,
+        seed=FLAGS.seed,
+        data_seed=FLAGS.data_seed,
+        mode="replay" if replay else "wall",
+        budget_s=FLAGS.budget_s,
         steps_per_s=FLAGS.steps_per_s if replay else steady,
         compile_s=FLAGS.compile_s if replay else compile_s - n_chunk / steady,
-        n_train=len(train_data), n_test=len(test_data), n_keypoints=train_data.n_keypoints,
-        protocol=protocol, cameras=FLAGS.cameras, views_per_frame=FLAGS.views_per_frame,
-        baselines=baseline_scores(train_data, test_data, protocol), curve=curve,
-        config=json.loads(c.to_json_best_effort()), devices=str(jax.devices()),
+        n_train=len(train_data),
+        n_test=len(test_data),
+        n_keypoints=train_data.n_keypoints,
+        protocol=protocol,
+        cameras=FLAGS.cameras,
+        views_per_frame=FLAGS.views_per_frame,
+        baselines=baseline_scores(train_data, test_data, protocol),
+        curve=curve,
+        config=json.loads(c.to_json_best_effort()),
+        devices=str(jax.devices()),
         cpu_affinity=len(os.sched_getaffinity(0)),
     )
 
