@@ -68,6 +68,14 @@ flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE (e.g. optim.lr=
 flags.DEFINE_string("tag", "", "suffix of the recipe name in the results (search runs)")
 
 
+def sequence_path(name: str) -> str:
+    """The file of a sequence: ``name`` itself if it exists, else ``NRSFM_DIR/name.npz``."""
+    path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
+    if not os.path.exists(path):
+        raise app.UsageError(f"no dataset {name!r}: not a file, not in {NRSFM_DIR}")
+    return path
+
+
 def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     """(train, test, protocol) for a sequence name/path or ``humans``."""
     if name == "humans":
@@ -77,10 +85,7 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
         data_cfg.humans.seed = seed
         train_data, test_data = load_splits(data_cfg)
         return train_data, test_data, data_cfg.protocol
-    path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
-    if not os.path.exists(path):
-        raise app.UsageError(f"no dataset {name!r}: not a file, not in {NRSFM_DIR}")
-    x = importers.load_sequence(path)
+    x = importers.load_sequence(sequence_path(name))
     train_data, test_data = importers.views_from_sequence(
         x, views_per_frame=views_per_frame, cameras=cameras, seed=seed,
         name=os.path.splitext(os.path.basename(name))[0])

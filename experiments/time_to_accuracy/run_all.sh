@@ -19,15 +19,21 @@ CAL=$HERE/results/calibration
 mkdir -p "$CAL" "$HERE/logs"
 
 reuse_calibration() {  # D R: copy R's calibration of another sequence with D's number of points
-  "$PY" - "$CAL" "$1" "$2" "$NRSFM" <<'PYEOF'
+  "$PY" - "$CAL" "$1" "$2" <<'PYEOF'
 import glob, json, os, sys
 
-from c3dpo_jax.data import importers
+sys.path.insert(0, "experiments/time_to_accuracy")
+from run import sequence_path  # noqa: E402
 
-cal, dataset, recipe, nrsfm = sys.argv[1:]
-path = dataset if os.path.exists(dataset) else os.path.join(nrsfm, f"{dataset}.npz")
-if dataset == "humans" or not os.path.exists(path):
+from c3dpo_jax.data import importers  # noqa: E402
+
+cal, dataset, recipe = sys.argv[1:]
+if dataset == "humans":
     sys.exit(1)  # humans: K depends on its config; calibrate it itself
+try:
+    path = sequence_path(dataset)
+except Exception:
+    sys.exit(1)  # no such sequence: the calibration run below says so in its log
 k = importers.load_sequence(path).shape[1]
 for f in sorted(glob.glob(os.path.join(cal, f"*__{recipe}__s0.json"))):
     r = json.load(open(f))
@@ -43,7 +49,6 @@ PYEOF
 # The rate depends only on the recipe and the number of points K, so a sequence whose K
 # matches an already calibrated one reuses that file (marked ``calibrated_on``;
 # REUSE_CALIBRATION=0 calibrates every dataset itself).
-NRSFM=${NRSFM:-$HERE/../../../shared/data/nrsfm}
 for d in $DATASETS; do
   for r in $RECIPES; do
     f=$CAL/${d}__${r}__s0.json
