@@ -48,3 +48,49 @@ def test_oracle_mean_shape_matches_scipy_alignment_on_deformed_shapes():
         rot, _ = Rotation.align_vectors(dst, src)
         expected = rot.apply(mean - mean[on].mean(0)) + gt[m, on].mean(0)
         np.testing.assert_allclose(pred[m], expected, atol=1e-9)
+
+
+def _low_rank_views(n_views=60, n_points=15, n_basis=3, seed=6):
+    """Views of shapes mean + basis @ coefficients under random rotations (N, 3 GT)."""
+    rng = np.random.default_rng(seed)
+    mean = rng.normal(size=(n_points, 3)) * [1.0, 0.7, 0.5]
+    mean -= mean.mean(0)
+    basis = rng.normal(size=(n_basis, n_points, 3))
+    # No deformation may be a rotation or translation of the mean: project those out, so the
+    # shapes' Procrustes alignment does not mix rotations into the deformations.
+    rigid = [np.cross(np.eye(3)[k], mean).ravel() for k in range(3)]
+    rigid += [np.tile(np.eye(3)[k], n_points) for k in range(3)]
+    q, _ = np.linalg.qr(np.stack(rigid, 1))
+    flat = basis.reshape(n_basis, -1)
+    basis = 0.1 * (flat - (flat @ q) @ q.T).reshape(basis.shape)
+    coef = rng.normal(size=(n_views, n_basis))
+    shapes = mean + np.einsum("md,dnc->mnc", coef, basis)
+    rots = Rotation.random(n_views, random_state=seed + 1).as_matrix()
+    return np.einsum("mij,mnj->mni", rots, shapes), basis
+
+
+def test_pca_basis_fit_recovers_the_depth_of_low_rank_shapes():
+    gt, _ = _low_rank_views()
+    model = baselines.pca_shape_basis(gt, n_basis=3)
+    assert model.basis.shape == (3, 15, 3)
+    assert model.noise_var < 1e-3 * model.variances.min()  # rank 3: little left over
+    vis = np.ones(gt.shape[:2])
+    vis[:, :3] = np.random.default_rng(7).uniform(size=(len(gt), 3)) > 0.3
+    data = KeypointData(kp=gt[..., :2], vis=vis, kp3d=gt)
+    fitted = baselines.fit_shape_basis(model, gt[..., :2], vis)
+    mean_only = baselines.fit_mean_shape(model.mean, gt[..., :2], vis)
+    assert evaluation.evaluate(mean_only, data)["mpjpe"] > 0.1
+    assert evaluation.evaluate(fitted, data)["mpjpe"] < 1e-3  # 0.14 for the mean shape
+    np.testing.assert_array_equal(fitted[..., :2][vis > 0], gt[..., :2][vis > 0])
+
+
+def test_pca_basis_fit_shrinks_to_the_mean_shape_under_a_strong_prior():
+    gt, _ = _low_rank_views(seed=8)
+    model = baselines.pca_shape_basis(gt, n_basis=3)
+    vis = np.ones(gt.shape[:2])
+    strong = model._replace(noise_var=1e12)  # the prior pins every coefficient at 0
+    np.testing.assert_allclose(baselines.fit_shape_basis(strong, gt[..., :2], vis),
+                               baselines.fit_mean_shape(model.mean, gt[..., :2], vis), atol=1e-6)
+    no_basis = baselines.pca_shape_basis(gt, n_basis=0)
+    np.testing.assert_allclose(baselines.fit_shape_basis(no_basis, gt[..., :2], vis),
+                               baselines.fit_mean_shape(no_basis.mean, gt[..., :2], vis))

@@ -36,14 +36,28 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     assert [p["step"] for p in result["curve"]] == [5, 10, 20]
     np.testing.assert_allclose([p["t"] for p in result["curve"]], [1.5, 2.0, 3.0])
     assert result["config"]["model"]["n_fully_connected"] == 32
-    assert set(result["baselines"]) == {"zero depth", "fitted mean shape", "oracle mean shape"}
+    assert set(result["baselines"]) == {"zero depth", "fitted mean shape", "oracle mean shape",
+                                        "fitted PCA basis"}
     assert all(np.isfinite(p["mpjpe"]) for p in result["curve"])
     # The rigidly fitted mean shape keeps the observed x, y: it beats zero depth here.
     assert result["baselines"]["fitted mean shape"] < result["baselines"]["zero depth"]
+    # The wave is one deformation mode (plus what the Procrustes alignment turns into
+    # rotations), well inside the 10-dimensional PCA basis: 0.03 against 0.17 here.
+    assert result["baselines"]["fitted PCA basis"] < 0.3 * result["baselines"]["fitted mean shape"]
+
+    # Baselines added after the runs (--baselines_only) take precedence in the report.
+    only = [f"--dataset={seq}", "--baselines_only", "--views_per_frame=2", f"--out_dir={out}"]
+    subprocess.run(cmd[:2] + only, check=True, capture_output=True, cwd=str(tmp_path))
+    with open(os.path.join(out, "baselines", "wave.json")) as f:
+        added = json.load(f)["baselines"]
+    assert added == result["baselines"]  # same views, same numbers
+    with open(os.path.join(out, "baselines", "wave.json"), "w") as f:
+        json.dump({"dataset": "wave", "baselines": dict(added, **{"fitted PCA basis": 0.123})}, f)
 
     report = subprocess.run([sys.executable, os.path.join(EXP, "report.py"), f"--results={out}",
                              "--at=2,3"], check=True, capture_output=True, text=True)
     row = next(line for line in report.stdout.splitlines() if line.startswith("| wave"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1:3] == [f"{p['mpjpe']:.3f}" for p in result["curve"][1:]]  # t = 2 s, 3 s
+    assert cells[-2] == "0.123"  # the fitted PCA basis column, from baselines/wave.json
     assert os.path.getsize(os.path.join(out, "curves.png")) > 1000

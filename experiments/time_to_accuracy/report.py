@@ -3,7 +3,8 @@
   python experiments/time_to_accuracy/report.py [--results=DIR] [--at=120,300,600]
 
 Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the number
-of seeds in brackets when more than one; the three baselines; the ratio of the fitted
+of seeds in brackets when more than one; the baselines, from the runs or from
+``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); the ratio of the fitted
 mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png``
 (MPJPE against wall time, one panel per dataset).
 """
@@ -17,7 +18,7 @@ import os
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BASELINES = ("zero depth", "fitted mean shape", "oracle mean shape")
+BASELINES = ("zero depth", "fitted mean shape", "oracle mean shape", "fitted PCA basis")
 
 
 def load(results_dir: str) -> list[dict]:
@@ -26,6 +27,19 @@ def load(results_dir: str) -> list[dict]:
         with open(path) as f:
             runs.append(json.load(f))
     return runs
+
+
+def baselines_by_dataset(runs: list[dict], results_dir: str) -> dict[str, dict]:
+    """Each dataset's baselines: those of its runs, updated by ``baselines/DATASET.json``
+    (run.py ``--baselines_only``: the same data, with baselines added after the runs)."""
+    out = collections.defaultdict(dict)
+    for r in runs:
+        out[r["dataset"]].update(r["baselines"])
+    for path in sorted(glob.glob(os.path.join(results_dir, "baselines", "*.json"))):
+        with open(path) as f:
+            b = json.load(f)
+        out[b["dataset"]].update(b["baselines"])
+    return out
 
 
 def mpjpe_at(run: dict, t: float) -> float:
@@ -45,7 +59,7 @@ def _cell(values: list[float]) -> str:
     return f"{np.mean(values):.3f} ± {np.std(values):.3f} ({len(values)})"
 
 
-def table(runs: list[dict], at: list[float], recipes: list[str]) -> str:
+def table(runs: list[dict], at: list[float], recipes: list[str], base: dict) -> str:
     by = collections.defaultdict(list)
     for r in runs:
         by[(r["dataset"], r["recipe"])].append(r)
@@ -57,17 +71,16 @@ def table(runs: list[dict], at: list[float], recipes: list[str]) -> str:
         cells = [d]
         for rec in recipes:
             cells += [_cell([mpjpe_at(r, t) for r in by[(d, rec)]]) for t in at]
-        any_run = next(r for r in runs if r["dataset"] == d)
-        cells += [f"{any_run['baselines'][b]:.3f}" for b in BASELINES]
+        cells += [f"{base[d][b]:.3f}" if b in base[d] else "-" for b in BASELINES]
         last = [mpjpe_at(r, at[-1]) for r in by[(d, recipes[0])]]
         last = [v for v in last if np.isfinite(v)]
-        ratio = any_run["baselines"]["fitted mean shape"] / np.mean(last) if last else float("nan")
+        ratio = base[d]["fitted mean shape"] / np.mean(last) if last else float("nan")
         cells.append(f"{ratio:.2f}x")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def figure(runs: list[dict], path: str) -> None:
+def figure(runs: list[dict], path: str, base: dict) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,9 +99,9 @@ def figure(runs: list[dict], path: str) -> None:
             labelled.add(r["recipe"])
             t = [p["t"] / 60 for p in r["curve"]]
             ax.plot(t, [p["mpjpe"] for p in r["curve"]], color=colour, alpha=0.8, label=label)
-        base = next(r for r in runs if r["dataset"] == d)["baselines"]
-        for name, style in zip(BASELINES, (":", "--", "-.")):
-            ax.axhline(base[name], color="gray", linestyle=style, label=name)
+        for name, style in zip(BASELINES, (":", "--", "-.", (0, (1, 4)))):
+            if name in base[d]:
+                ax.axhline(base[d][name], color="gray", linestyle=style, label=name)
         ax.set_title(d)
         ax.set_yscale("log")
         ax.set_xlabel("training wall time (min)")
@@ -112,8 +125,9 @@ def main() -> None:
         raise SystemExit(f"no results in {args.results}; run run.py first")
     at = [float(t) for t in args.at.split(",")]
     recipes = [r for r in args.recipes.split(",") if any(x["recipe"] == r for x in runs)]
-    print(table(runs, at, recipes))
-    figure(runs, os.path.join(args.results, "curves.png"))
+    base = baselines_by_dataset(runs, args.results)
+    print(table(runs, at, recipes, base))
+    figure(runs, os.path.join(args.results, "curves.png"), base)
     print(f"figure: {os.path.join(args.results, 'curves.png')}")
 
 

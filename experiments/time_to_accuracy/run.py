@@ -36,6 +36,7 @@ from absl import app, flags, logging
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))  # for ``configs``
 
+import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -66,6 +67,9 @@ flags.DEFINE_float("compile_s", 0.0, "replay mode: calibrated compile seconds")
 flags.DEFINE_string("out_dir", os.path.join(HERE, "results"), "where results go")
 flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE (e.g. optim.lr=1e-3)")
 flags.DEFINE_string("tag", "", "suffix of the recipe name in the results (search runs)")
+flags.DEFINE_bool("baselines_only", False, "only score the baselines (see baselines_only())")
+flags.DEFINE_string("save_variables", "", "also write the final model variables here "
+                    "(flax msgpack; read with flax.serialization.msgpack_restore)")
 
 
 def sequence_path(name: str) -> str:
@@ -126,11 +130,13 @@ def _override(c, items, prefix: str = ""):
     return c
 
 
-def baseline_scores(train_data, test_data, protocol: str) -> dict:
+def baseline_scores(train_data, test_data, protocol: str, n_basis: int) -> dict:
     mean_shape = baselines.procrustes_mean_shape(train_data.kp3d)
     preds = baselines.predict(mean_shape, test_data.kp, test_data.vis)
     preds["oracle mean shape"] = baselines.oracle_mean_shape(mean_shape, test_data.kp3d,
                                                              test_data.vis)
+    pca = baselines.pca_shape_basis(train_data.kp3d, n_basis)
+    preds["fitted PCA basis"] = baselines.fit_shape_basis(pca, test_data.kp, test_data.vis)
     out = {k: evaluation.evaluate(p, test_data, protocol)["mpjpe"] for k, p in preds.items()}
     split = evaluation.mpjpe_by_visibility(preds["fitted mean shape"], test_data)
     out.update({f"fitted mean shape, {k.removeprefix('mpjpe_')}": v for k, v in split.items()})
@@ -182,6 +188,9 @@ def run() -> dict:
         if done:
             break
     steady = (step - n_chunk) / max(t_train - first_chunk_s, 1e-9)
+    if FLAGS.save_variables:
+        with open(FLAGS.save_variables, "wb") as f:
+            f.write(flax.serialization.msgpack_serialize(jax.device_get(state.variables)))
     return dict(
         dataset=os.path.splitext(os.path.basename(FLAGS.dataset))[0],
         recipe=FLAGS.recipe + FLAGS.tag,
@@ -197,7 +206,7 @@ def run() -> dict:
         protocol=protocol,
         cameras=FLAGS.cameras,
         views_per_frame=FLAGS.views_per_frame,
-        baselines=baseline_scores(train_data, test_data, protocol),
+        baselines=baseline_scores(train_data, test_data, protocol, c.model.shape_basis_size),
         curve=curve,
         config=json.loads(c.to_json_best_effort()),
         devices=str(jax.devices()),
@@ -205,8 +214,29 @@ def run() -> dict:
     )
 
 
+def baselines_only() -> None:
+    """``--baselines_only``: the baselines of one dataset (no training), written to
+    ``OUT_DIR/baselines/DATASET.json``; report.py prefers these over a run's own copy."""
+    train_data, test_data, protocol = load_dataset(
+        FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
+    c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
+    name = os.path.splitext(os.path.basename(FLAGS.dataset))[0]
+    result = dict(dataset=name, data_seed=FLAGS.data_seed, cameras=FLAGS.cameras,
+                  views_per_frame=FLAGS.views_per_frame, n_basis=c.model.shape_basis_size,
+                  baselines=baseline_scores(train_data, test_data, protocol,
+                                            c.model.shape_basis_size))
+    os.makedirs(os.path.join(FLAGS.out_dir, "baselines"), exist_ok=True)
+    path = os.path.join(FLAGS.out_dir, "baselines", f"{name}.json")
+    with open(path, "w") as f:
+        json.dump(result, f, indent=1)
+    print(f"{name}: " + ", ".join(f"{k} {v:.4f}" for k, v in result["baselines"].items())
+          + f" -> {path}")
+
+
 def main(argv):
     del argv
+    if FLAGS.baselines_only:
+        return baselines_only()
     result = run()
     os.makedirs(FLAGS.out_dir, exist_ok=True)
     name = result["dataset"]
