@@ -4,7 +4,8 @@
 
 Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the number
 of seeds in brackets when more than one; the baselines, from the runs or from
-``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); the ratio of the fitted
+``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); supervised.py's lifter
+when ``DIR/supervised/`` has runs; the ratio of the fitted
 mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png``
 (MPJPE against wall time, one panel per dataset).
 """
@@ -42,6 +43,16 @@ def baselines_by_dataset(runs: list[dict], results_dir: str) -> dict[str, dict]:
     return out
 
 
+def supervised_by_dataset(results_dir: str) -> dict[str, list[float]]:
+    """Final test MPJPE of supervised.py's runs (``supervised/DATASET__sSEED.json``)."""
+    out = collections.defaultdict(list)
+    for path in sorted(glob.glob(os.path.join(results_dir, "supervised", "*.json"))):
+        with open(path) as f:
+            r = json.load(f)
+        out[r["dataset"]].append(r["mpjpe"])
+    return out
+
+
 def mpjpe_at(run: dict, t: float) -> float:
     """MPJPE of the evaluation made when the run's time reached ``t`` (the first at or
     after it: runs evaluate at the first chunk boundary past each interval), NaN if
@@ -59,19 +70,24 @@ def _cell(values: list[float]) -> str:
     return f"{np.mean(values):.3f} ± {np.std(values):.3f} ({len(values)})"
 
 
-def table(runs: list[dict], at: list[float], recipes: list[str], base: dict) -> str:
+def table(runs: list[dict], at: list[float], recipes: list[str], base: dict,
+          supervised: dict | None = None) -> str:
+    supervised = supervised or {}
     by = collections.defaultdict(list)
     for r in runs:
         by[(r["dataset"], r["recipe"])].append(r)
     datasets = sorted({r["dataset"] for r in runs})
     head = ["dataset"] + [f"{rec} {t / 60:g} min" for rec in recipes for t in at]
-    head += list(BASELINES) + [f"fitted mean / {recipes[0]} ({at[-1] / 60:g} min)"]
+    head += list(BASELINES) + ["supervised lifter"] * bool(supervised)
+    head += [f"fitted mean / {recipes[0]} ({at[-1] / 60:g} min)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for d in datasets:
         cells = [d]
         for rec in recipes:
             cells += [_cell([mpjpe_at(r, t) for r in by[(d, rec)]]) for t in at]
         cells += [f"{base[d][b]:.3f}" if b in base[d] else "-" for b in BASELINES]
+        if supervised:
+            cells.append(_cell(supervised.get(d, [])))
         last = [mpjpe_at(r, at[-1]) for r in by[(d, recipes[0])]]
         last = [v for v in last if np.isfinite(v)]
         ratio = base[d]["fitted mean shape"] / np.mean(last) if last else float("nan")
@@ -126,7 +142,7 @@ def main() -> None:
     at = [float(t) for t in args.at.split(",")]
     recipes = [r for r in args.recipes.split(",") if any(x["recipe"] == r for x in runs)]
     base = baselines_by_dataset(runs, args.results)
-    print(table(runs, at, recipes, base))
+    print(table(runs, at, recipes, base, supervised_by_dataset(args.results)))
     figure(runs, os.path.join(args.results, "curves.png"), base)
     print(f"figure: {os.path.join(args.results, 'curves.png')}")
 
