@@ -51,9 +51,9 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
           refit=None) -> np.ndarray:
     """Fits ``s R2 S_m + t`` to the visible points of each view; returns 3D predictions.
 
-    ``shapes`` is (N, 3) or (M, N, 3). ``refit(shapes, proj, vis, kp)``, if given, is
-    called ``n_iters`` times with the current per-view scaled 2x3 projections and returns
-    new (M, N, 3) shapes (alternation between camera and shape)."""
+    ``shapes`` is (N, 3) or (M, N, 3). ``refit(proj)``, if given, is called ``n_iters``
+    times with the current per-view scaled 2x3 projections (M, 2, 3) and returns new
+    (M, N, 3) shapes (alternation between camera and shape)."""
     w = vis.astype(np.float64)
     count = np.maximum(w.sum(1), 1.0)[:, None]
     kp_mean = (kp * w[..., None]).sum(1) / count
@@ -71,7 +71,7 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
         rows = np.einsum("mij,mjk->mik", u, vt)
         scale = sig.mean(1)
         if it < n_iters:
-            shapes = refit(scale[:, None, None] * rows, kp, vis)
+            shapes = refit(scale[:, None, None] * rows)
     axis = np.cross(rows[:, 0], rows[:, 1])
     xy = scale[:, None, None] * np.einsum("mij,mnj->mni", rows, centred) + kp_mean[:, None]
     xy = np.where(w[..., None] > 0, kp, xy)
@@ -105,40 +105,46 @@ def pca_shape_basis(kp3d: np.ndarray, n_basis: int, max_samples: int = 5000) -> 
     _, sing, vt = np.linalg.svd(dev, full_matrices=False)
     eig = np.zeros(dev.shape[1])
     eig[: len(sing)] = sing**2 / len(x)
-    n_basis = min(n_basis, dev.shape[1] - 1)
+    n_basis = min(n_basis, len(sing) - 1, dev.shape[1] - 1)  # fewer shapes than D: fewer
     noise_var = max(float(eig[n_basis:].mean()), 1e-12)
     basis = vt[:n_basis].reshape(n_basis, *mean.shape)
-    return ShapeBasis(mean, basis, eig[:n_basis], noise_var)
+    return ShapeBasis(mean, basis, np.maximum(eig[:n_basis], 1e-12), noise_var)
 
 
-def fit_shape_basis(model: ShapeBasis, kp: np.ndarray, vis: np.ndarray,
-                    n_iters: int = 20) -> np.ndarray:
+def fit_shape_basis(model: ShapeBasis, kp: np.ndarray, vis: np.ndarray, n_iters: int = 20,
+                    chunk: int = 1024) -> np.ndarray:
     """The PPCA shape model fitted to each view (MAP coefficients under the Gaussian prior,
     alternating with the scaled orthographic camera of ``fit_mean_shape``, which is the
-    zero-coefficient start); observed x, y kept, depth from the fitted shape."""
+    zero-coefficient start); observed x, y kept, depth from the fitted shape. Views are
+    processed ``chunk`` at a time (the per-view design matrices are (N * 2, D))."""
+    if len(model.basis) == 0:
+        return _lift(model.mean, kp, vis)
+    if len(kp) > chunk:
+        return np.concatenate([
+            fit_shape_basis(model, kp[i:i + chunk], vis[i:i + chunk], n_iters, chunk)
+            for i in range(0, len(kp), chunk)])
     w = vis.astype(np.float64)
-    count = np.maximum(w.sum(1), 1.0)[:, None]
-    # Visible-point centring removes the translation from the linear problem.
-    def centre(x):  # (..., M, N, 3) -> centred over each view's visible points
-        return (x - np.einsum("mn,...mnc->...mc", w, x)[..., None, :] / count[..., None]) * w[
-            ..., None]
+    count = np.maximum(w.sum(1), 1.0)
 
-    mean = np.broadcast_to(model.mean, kp.shape[:2] + (3,))
-    basis = np.broadcast_to(model.basis[:, None], (len(model.basis),) + mean.shape)
-    b_c, m_c = centre(basis), centre(mean)
-    y = centre(np.concatenate([kp, np.zeros(kp.shape[:2] + (1,))], -1))[..., :2]
+    def centre(x):  # (..., M, N, C): minus each view's visible-point mean, hidden points 0
+        mean = np.einsum("mn,...mnc->...mc", w, x) / count[:, None]
+        return (x - mean[..., None, :]) * w[..., None]
 
-    def refit(proj, kp, vis):
+    m_c = centre(np.broadcast_to(model.mean, kp.shape[:2] + (3,)))
+    b_c = centre(np.broadcast_to(model.basis[:, None], (len(model.basis),) + m_c.shape))
+    y = centre(kp)
+    prior = model.noise_var / model.variances  # ridge per coefficient, in shape units
+
+    def refit(proj):
+        # Residual of the projected mean shape, linear in the coefficients; the image-space
+        # ridge is the shape-space one times the camera scale squared.
         a_mat = np.einsum("mij,dmnj->mnid", proj, b_c).reshape(len(kp), -1, len(model.basis))
         r = (y - np.einsum("mij,mnj->mni", proj, m_c)).reshape(len(kp), -1)
         scale2 = (np.linalg.norm(proj, axis=(1, 2)) ** 2 / 2)[:, None, None]
-        ata = np.einsum("mkd,mke->mde", a_mat, a_mat)
-        ata = ata + scale2 * np.diag(model.noise_var / model.variances)
+        ata = np.einsum("mkd,mke->mde", a_mat, a_mat) + scale2 * np.diag(prior)
         coef = np.linalg.solve(ata, np.einsum("mkd,mk->md", a_mat, r)[..., None])[..., 0]
         return model.mean + np.einsum("md,dnc->mnc", coef, model.basis)
 
-    if len(model.basis) == 0:
-        return _lift(model.mean, kp, vis)
     return _lift(model.mean, kp, vis, n_iters, refit)
 
 

@@ -94,3 +94,14 @@ def test_pca_basis_fit_shrinks_to_the_mean_shape_under_a_strong_prior():
     no_basis = baselines.pca_shape_basis(gt, n_basis=0)
     np.testing.assert_allclose(baselines.fit_shape_basis(no_basis, gt[..., :2], vis),
                                baselines.fit_mean_shape(no_basis.mean, gt[..., :2], vis))
+
+
+def test_pca_basis_fit_is_the_same_in_chunks_and_with_few_training_shapes():
+    gt, _ = _low_rank_views(n_views=50, seed=9)
+    model = baselines.pca_shape_basis(gt, n_basis=3)
+    vis = np.ones(gt.shape[:2])
+    whole = baselines.fit_shape_basis(model, gt[..., :2], vis)
+    np.testing.assert_allclose(baselines.fit_shape_basis(model, gt[..., :2], vis, chunk=7), whole)
+    few = baselines.pca_shape_basis(gt[:3], n_basis=10)  # 3 shapes: at most 2 modes
+    assert len(few.basis) == 2 and np.all(few.variances > 0)
+    assert np.all(np.isfinite(baselines.fit_shape_basis(few, gt[..., :2], vis)))
