@@ -5,9 +5,9 @@
 Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the number
 of seeds in brackets when more than one; the baselines, from the runs or from
 ``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); supervised.py's lifter
-when ``DIR/supervised/`` has runs; the ratio of the fitted
-mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png``
-(MPJPE against wall time, one panel per dataset).
+when ``DIR/supervised/`` has runs; the ratio of the fitted mean shape to the cpu recipe
+at the last budget) and writes ``DIR/curves.png`` (MPJPE against wall time, one panel
+per dataset).
 """
 
 import argparse
