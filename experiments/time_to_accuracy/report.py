@@ -96,7 +96,8 @@ def table(runs: list[dict], at: list[float], recipes: list[str], base: dict,
     return "\n".join(lines)
 
 
-def figure(runs: list[dict], path: str, base: dict) -> None:
+def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = None) -> None:
+    supervised = supervised or {}
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,9 +116,13 @@ def figure(runs: list[dict], path: str, base: dict) -> None:
             labelled.add(r["recipe"])
             t = [p["t"] / 60 for p in r["curve"]]
             ax.plot(t, [p["mpjpe"] for p in r["curve"]], color=colour, alpha=0.8, label=label)
-        for name, style in zip(BASELINES, (":", "--", "-.", (0, (1, 4)))):
-            if name in base[d]:
-                ax.axhline(base[d][name], color="gray", linestyle=style, label=name)
+        for name, style in zip(BASELINES, (":", "--", "-.", ":")):
+            if name in base[d]:  # gray: baselines; green: the 3D-supervised references
+                colour = "C2" if name == "fitted PCA basis" else "gray"
+                ax.axhline(base[d][name], color=colour, linestyle=style, label=name)
+        if supervised.get(d):
+            ax.axhline(np.mean(supervised[d]), color="C2", linestyle="--",
+                       label="supervised lifter")
         ax.set_title(d)
         ax.set_yscale("log")
         ax.set_xlabel("training wall time (min)")
@@ -142,8 +147,9 @@ def main() -> None:
     at = [float(t) for t in args.at.split(",")]
     recipes = [r for r in args.recipes.split(",") if any(x["recipe"] == r for x in runs)]
     base = baselines_by_dataset(runs, args.results)
-    print(table(runs, at, recipes, base, supervised_by_dataset(args.results)))
-    figure(runs, os.path.join(args.results, "curves.png"), base)
+    supervised = supervised_by_dataset(args.results)
+    print(table(runs, at, recipes, base, supervised))
+    figure(runs, os.path.join(args.results, "curves.png"), base, supervised)
     print(f"figure: {os.path.join(args.results, 'curves.png')}")
 
 
