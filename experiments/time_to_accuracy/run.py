@@ -80,6 +80,11 @@ def sequence_path(name: str) -> str:
     return path
 
 
+def dataset_name(name: str) -> str:
+    """Result-file name of a dataset: ``pickup`` for ``pickup`` and for ``dir/pickup.npz``."""
+    return os.path.splitext(os.path.basename(name))[0]
+
+
 def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     """(train, test, protocol) for a sequence name/path or ``humans``."""
     if name == "humans":
@@ -92,7 +97,7 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     x = importers.load_sequence(sequence_path(name))
     train_data, test_data = importers.views_from_sequence(
         x, views_per_frame=views_per_frame, cameras=cameras, seed=seed,
-        name=os.path.splitext(os.path.basename(name))[0])
+        name=dataset_name(name))
     return train_data, test_data, "default"
 
 
@@ -192,7 +197,7 @@ def run() -> dict:
         with open(FLAGS.save_variables, "wb") as f:
             f.write(flax.serialization.msgpack_serialize(jax.device_get(state.variables)))
     return dict(
-        dataset=os.path.splitext(os.path.basename(FLAGS.dataset))[0],
+        dataset=dataset_name(FLAGS.dataset),
         recipe=FLAGS.recipe + FLAGS.tag,
         seed=FLAGS.seed,
         data_seed=FLAGS.data_seed,
@@ -220,7 +225,7 @@ def baselines_only() -> None:
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
     c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
-    name = os.path.splitext(os.path.basename(FLAGS.dataset))[0]
+    name = dataset_name(FLAGS.dataset)
     result = dict(dataset=name, data_seed=FLAGS.data_seed, cameras=FLAGS.cameras,
                   views_per_frame=FLAGS.views_per_frame, n_basis=c.model.shape_basis_size,
                   baselines=baseline_scores(train_data, test_data, protocol,

@@ -56,18 +56,21 @@ class Lifter(nn.Module):
         return nn.Dense(3 * self.n_keypoints)(feats).reshape(3, self.n_keypoints).T
 
 
+def _visible_mean(kp, vis):
+    """(M, 1, 2) mean of each view's visible points: the lifter's origin in x, y."""
+    count = np.maximum(vis.sum(1, keepdims=True), 1.0)
+    return (kp * vis[..., None]).sum(1, keepdims=True) / count[..., None]
+
+
 def _centred(kp, vis):
     """Points minus the mean of the visible ones (per view)."""
-    count = np.maximum(vis.sum(1, keepdims=True), 1.0)
-    return kp - (kp * vis[..., None]).sum(1, keepdims=True) / count[..., None]
+    return kp - _visible_mean(kp, vis)
 
 
 def _targets(data):
     """Ground truth in the lifter's frame: x, y minus the visible kp mean, depth centred."""
-    count = np.maximum(data.vis.sum(1, keepdims=True), 1.0)
-    kp_mean = (data.kp * data.vis[..., None]).sum(1, keepdims=True) / count[..., None]
     gt = data.kp3d.astype(np.float64)
-    xy = gt[..., :2] - kp_mean
+    xy = gt[..., :2] - _visible_mean(data.kp, data.vis)
     z = gt[..., 2:] - gt[..., 2:].mean(1, keepdims=True)
     return np.concatenate([xy, z], -1).astype(np.float32)
 
@@ -114,9 +117,7 @@ def train_and_evaluate() -> dict:
 
     def score(params, stats):
         out = np.asarray(predict(params, stats), np.float64)
-        count = np.maximum(test_data.vis.sum(1, keepdims=True), 1.0)
-        kp_mean = (test_data.kp * test_data.vis[..., None]).sum(1, keepdims=True) / count[
-            ..., None]
+        kp_mean = _visible_mean(test_data.kp, test_data.vis)
         xy = np.where(test_data.vis[..., None] > 0, test_data.kp, out[..., :2] + kp_mean)
         pred = np.concatenate([xy, out[..., 2:]], -1)
         return evaluation.evaluate(pred, test_data, protocol)["mpjpe"]
@@ -136,7 +137,7 @@ def train_and_evaluate() -> dict:
         if done % every == 0 or done >= FLAGS.steps:
             curve.append(dict(step=done, wall_s=t_train, loss=loss, mpjpe=score(*carry[:2])))
             logging.info("%s", curve[-1])
-    return dict(dataset=os.path.splitext(os.path.basename(FLAGS.dataset))[0], seed=FLAGS.seed,
+    return dict(dataset=run.dataset_name(FLAGS.dataset), seed=FLAGS.seed,
                 data_seed=FLAGS.data_seed, steps=done, width=FLAGS.width,
                 blocks=FLAGS.blocks, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                 n_train=len(train_data), n_test=len(test_data), protocol=protocol,
