@@ -80,7 +80,9 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
 
 
 def fit_mean_shape(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -> np.ndarray:
-    """Fits ``s R2 S + t`` to the visible points of each view; returns 3D predictions."""
+    """Fits ``s R2 S + t`` to the visible points of each view; returns 3D predictions.
+
+    ``mean_shape`` is one shape (N, 3) for every view, or one per view (M, N, 3)."""
     return _lift(mean_shape, kp, vis)
 
 

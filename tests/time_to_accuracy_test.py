@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXP = os.path.join(ROOT, "experiments", "time_to_accuracy")
@@ -26,7 +27,8 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     _sequence(seq)
     cmd = [sys.executable, os.path.join(EXP, "run.py"), f"--dataset={seq}", "--recipe=cpu",
            "--budget_s=3", "--eval_every_s=1", "--steps_per_s=10", "--compile_s=1",
-           "--chunk_steps=5", "--views_per_frame=2", f"--out_dir={out}"]
+           "--chunk_steps=5", "--views_per_frame=2", f"--out_dir={out}",
+           f"--save_variables={tmp_path / 'wave.msgpack'}"]
     cmd += [f"--set={s}" for s in TINY]
     subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path))
     with open(os.path.join(out, "wave__cpu__s0.json")) as f:
@@ -62,6 +64,18 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     assert cells[-2] == "0.123"  # the fitted PCA basis column, from baselines/wave.json
     assert os.path.getsize(os.path.join(out, "curves.png")) > 1000
 
+    # diagnose.py on the saved variables scores the network and the baseline as the run did.
+    diag = [sys.executable, os.path.join(EXP, "diagnose.py"), f"--dataset={seq}",
+            "--views_per_frame=2", f"--variables={tmp_path / 'wave.msgpack'}",
+            f"--json={tmp_path / 'diag.json'}"] + [f"--set={s}" for s in TINY]
+    subprocess.run(diag, check=True, capture_output=True, cwd=str(tmp_path))
+    with open(tmp_path / "diag.json") as f:
+        figures = json.load(f)["figures"]
+    np.testing.assert_allclose(figures["network"], result["curve"][-1]["mpjpe"], rtol=1e-6)
+    np.testing.assert_allclose(figures["fitted mean shape (baseline)"],
+                               result["baselines"]["fitted mean shape"], rtol=1e-9)
+    assert all(np.isfinite(v) for v in figures.values())
+
 
 def test_supervised_lifter_learns_depth_from_3d_ground_truth(tmp_path):
     seq, out = str(tmp_path / "wave.npz"), str(tmp_path / "results")
@@ -80,3 +94,72 @@ def test_supervised_lifter_learns_depth_from_3d_ground_truth(tmp_path):
     assert result["mpjpe"] == result["curve"][-1]["mpjpe"]
     # With 3D ground truth the lifter is far better than no depth at all.
     assert result["mpjpe"] < 0.5 * base["zero depth"]
+
+
+def _diagnose_module():
+    sys.path.insert(0, EXP)
+    try:
+        import diagnose
+    finally:
+        sys.path.remove(EXP)
+    return diagnose
+
+
+def test_diagnostics_recover_exact_cameras_shapes_and_low_rank_models():
+    diagnose = _diagnose_module()
+    from c3dpo_jax import baselines
+
+    rng = np.random.default_rng(1)
+    mean, modes = rng.normal(size=(12, 3)), rng.normal(size=(2, 12, 3))
+    mean, modes = mean - mean.mean(0), modes - modes.mean(1, keepdims=True)  # centred
+    shapes = mean + np.einsum("md,dnc->mnc", rng.normal(size=(40, 2)) * 0.3, modes)
+    rot = Rotation.random(40, random_state=2).as_matrix()
+    gt = np.einsum("mij,mnj->mni", rot, shapes) + rng.normal(size=(40, 1, 3))
+
+    # Oracle rotation: exact for rotated copies and for mirrored ones (a reflection is the
+    # canonical-frame ambiguity), not for a shape that differs.
+    np.testing.assert_allclose(diagnose.oracle_rotation(shapes, gt), gt, atol=1e-9)
+    np.testing.assert_allclose(diagnose.oracle_rotation(shapes * [1, -1, 1], gt), gt, atol=1e-9)
+    assert np.abs(diagnose.oracle_rotation(shapes[::-1], gt) - gt).max() > 0.1
+
+    # A linear model with both modes fits any of them exactly in 3D; with one it does not.
+    q = np.linalg.qr(modes.reshape(2, -1).T)[0].T.reshape(2, 12, 3)
+    for d, exact in ((2, True), (1, False)):
+        model = baselines.ShapeBasis(mean, q[:d], np.ones(d), 1e-6)
+        fit = diagnose.pca_oracle_fit(model, gt, n_iters=30)
+        assert np.allclose(fit, gt, atol=1e-6) == exact, d
+
+    # Scaled orthographic views of one rigid shape: zero 2D residual; of deforming ones: not.
+    kp = 0.7 * gt[..., :2]
+    vis = np.ones(kp.shape[:2])
+    rigid = np.einsum("mij,nj->mni", rot, mean)[..., :2] * 0.7
+    assert diagnose.rigid_residual_2d(mean, rigid, vis) < 1e-9
+    assert diagnose.rigid_residual_2d(mean, kp, vis) > 0.01
+
+
+def test_learnt_basis_spans_the_shape_layer():
+    diagnose = _diagnose_module()
+    import jax
+    import jax.numpy as jnp
+
+    from c3dpo_jax import model
+
+    cfg = model.ModelConfig(n_keypoints=7, shape_basis_size=3, n_fully_connected=16, n_layers=1,
+                            canonicalization_n_fully_connected=16, canonicalization_n_layers=1,
+                            weight_init_std=0.5)
+    variables = model.init_variables(jax.random.key(0), cfg)
+    alpha = np.random.default_rng(0).normal(size=(50, 3))
+    basis = diagnose.learnt_basis(variables, cfg, alpha, noise_var=1e-6)
+    net = model.make_network(cfg)
+    for a in alpha[:5]:
+        shape = np.asarray(net.apply({"params": variables["params"]}, jnp.asarray(a),
+                                     method="shape"))
+        flat = basis.basis.reshape(3, -1)
+        np.testing.assert_allclose(flat @ flat.T, np.eye(3), atol=1e-9)  # orthonormal modes
+        coef = flat @ (shape - basis.mean).ravel()
+        np.testing.assert_allclose(basis.mean + (coef @ flat).reshape(7, 3), shape, atol=1e-5)
+    # Prior variances: those of the coefficients of ``alpha`` in the orthonormal frame.
+    coefs = np.stack([basis.basis.reshape(3, -1) @ (np.asarray(net.apply(
+        {"params": variables["params"]}, jnp.asarray(a), method="shape")) - basis.mean).ravel()
+        for a in alpha])
+    np.testing.assert_allclose(basis.variances, coefs.var(0), rtol=1e-4)
