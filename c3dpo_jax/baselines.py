@@ -55,21 +55,9 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
     times with the current per-view scaled 2x3 projections (M, 2, 3) and returns new
     (M, N, 3) shapes (alternation between camera and shape)."""
     w = vis.astype(np.float64)
-    count = np.maximum(w.sum(1), 1.0)[:, None]
-    kp_mean = (kp * w[..., None]).sum(1) / count
-    y = (kp - kp_mean[:, None]) * w[..., None]
     shapes = np.broadcast_to(shapes, kp.shape[:2] + (3,))
     for it in range(n_iters + 1):
-        s_mean = np.einsum("mn,mnc->mc", w, shapes) / count
-        centred = shapes - s_mean[:, None]
-        s = centred * w[..., None]
-        # Least-squares 2x3 camera per view, then the nearest scaled orthonormal rows.
-        sts = np.einsum("mni,mnj->mij", s, s) + 1e-9 * np.eye(3)
-        yts = np.einsum("mni,mnj->mij", y, s)
-        cam = np.einsum("mij,mjk->mik", yts, np.linalg.inv(sts))
-        u, sig, vt = np.linalg.svd(cam, full_matrices=False)
-        rows = np.einsum("mij,mjk->mik", u, vt)
-        scale = sig.mean(1)
+        scale, rows, centred, kp_mean = fit_camera(shapes, kp, vis)
         if it < n_iters:
             shapes = refit(scale[:, None, None] * rows)
     axis = np.cross(rows[:, 0], rows[:, 1])
@@ -77,6 +65,27 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
     xy = np.where(w[..., None] > 0, kp, xy)
     depth = scale[:, None] * np.einsum("mnj,mj->mn", centred, axis)
     return np.concatenate([xy, depth[..., None]], axis=-1)
+
+
+def fit_camera(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray):
+    """The scaled orthographic camera of each view: least-squares 2x3 projection of the
+    shapes' visible points onto ``kp``, then the nearest scaled orthonormal rows.
+
+    ``shapes`` is (N, 3) or (M, N, 3). Returns ``(scale (M,), rows (M, 2, 3), centred
+    shapes (M, N, 3), kp_mean (M, 2))``: the projection of point n of view m is
+    ``scale[m] * rows[m] @ centred[m, n] + kp_mean[m]`` (both means over visible points)."""
+    w = vis.astype(np.float64)
+    count = np.maximum(w.sum(1), 1.0)[:, None]
+    kp_mean = (kp * w[..., None]).sum(1) / count
+    y = (kp - kp_mean[:, None]) * w[..., None]
+    shapes = np.broadcast_to(shapes, kp.shape[:2] + (3,))
+    centred = shapes - (np.einsum("mn,mnc->mc", w, shapes) / count)[:, None]
+    s = centred * w[..., None]
+    sts = np.einsum("mni,mnj->mij", s, s) + 1e-9 * np.eye(3)
+    yts = np.einsum("mni,mnj->mij", y, s)
+    cam = np.einsum("mij,mjk->mik", yts, np.linalg.inv(sts))
+    u, sig, vt = np.linalg.svd(cam, full_matrices=False)
+    return sig.mean(1), np.einsum("mij,mjk->mik", u, vt), centred, kp_mean
 
 
 def fit_mean_shape(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -> np.ndarray:

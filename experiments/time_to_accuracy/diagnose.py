@@ -90,18 +90,9 @@ def learnt_basis(variables, model_cfg, alpha: np.ndarray, noise_var: float):
 
 def rigid_residual_2d(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -> float:
     """Mean 2D distance of the visible points to the rigidly fitted mean shape's projection."""
-    w = vis.astype(np.float64)
-    count = np.maximum(w.sum(1), 1.0)[:, None]
-    kp_mean = (kp * w[..., None]).sum(1) / count
-    s = np.broadcast_to(mean_shape, kp.shape[:2] + (3,))
-    s = s - (np.einsum("mn,mnc->mc", w, s) / count)[:, None]
-    y, sw = (kp - kp_mean[:, None]) * w[..., None], s * w[..., None]
-    cam = np.einsum("mni,mnj->mij", y, sw) @ np.linalg.inv(
-        np.einsum("mni,mnj->mij", sw, sw) + 1e-9 * np.eye(3))
-    u, sig, vt = np.linalg.svd(cam, full_matrices=False)
-    proj = sig.mean(1)[:, None, None] * (u @ vt)
-    xy = np.einsum("mij,mnj->mni", proj, s) + kp_mean[:, None]
-    return float((np.linalg.norm(xy - kp, axis=-1) * w).sum() / w.sum())
+    scale, rows, centred, kp_mean = baselines.fit_camera(mean_shape, kp, vis)
+    xy = scale[:, None, None] * np.einsum("mij,mnj->mni", rows, centred) + kp_mean[:, None]
+    return float((np.linalg.norm(xy - kp, axis=-1) * vis).sum() / vis.sum())
 
 
 def diagnose(variables, train_data, test_data, protocol: str, model_cfg, noise_var: float):
