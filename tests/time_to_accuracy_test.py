@@ -151,15 +151,12 @@ def test_learnt_basis_spans_the_shape_layer():
     alpha = np.random.default_rng(0).normal(size=(50, 3))
     basis = diagnose.learnt_basis(variables, cfg, alpha, noise_var=1e-6)
     net = model.make_network(cfg)
-    for a in alpha[:5]:
-        shape = np.asarray(net.apply({"params": variables["params"]}, jnp.asarray(a),
-                                     method="shape"))
-        flat = basis.basis.reshape(3, -1)
-        np.testing.assert_allclose(flat @ flat.T, np.eye(3), atol=1e-9)  # orthonormal modes
-        coef = flat @ (shape - basis.mean).ravel()
+    shapes = np.stack([np.asarray(net.apply({"params": variables["params"]}, jnp.asarray(a),
+                                            method="shape")) for a in alpha])
+    flat = basis.basis.reshape(3, -1)
+    np.testing.assert_allclose(flat @ flat.T, np.eye(3), atol=1e-9)  # orthonormal modes
+    coefs = (shapes - basis.mean).reshape(len(alpha), -1) @ flat.T
+    for shape, coef in zip(shapes[:5], coefs[:5]):
         np.testing.assert_allclose(basis.mean + (coef @ flat).reshape(7, 3), shape, atol=1e-5)
     # Prior variances: those of the coefficients of ``alpha`` in the orthonormal frame.
-    coefs = np.stack([basis.basis.reshape(3, -1) @ (np.asarray(net.apply(
-        {"params": variables["params"]}, jnp.asarray(a), method="shape")) - basis.mean).ravel()
-        for a in alpha])
     np.testing.assert_allclose(basis.variances, coefs.var(0), rtol=1e-4)

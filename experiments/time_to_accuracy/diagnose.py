@@ -45,19 +45,14 @@ def oracle_rotation(shapes: np.ndarray, kp3d: np.ndarray) -> np.ndarray:
     """Each shape (M, N, 3), centred, under its best rotation onto the centred ``kp3d``; per
     shape the better of it and its mirror image (C3DPO's canonical frame may be mirrored,
     the reflection the protocol's depth flip resolves for the camera-frame output)."""
-    src = shapes - shapes.mean(1, keepdims=True)
     dst_mean = kp3d.mean(1, keepdims=True)
-    best, best_err = None, None
-    for mirror in (np.ones(3), np.array([1.0, 1.0, -1.0])):
-        rot = baselines._kabsch(src * mirror, kp3d - dst_mean)
-        out = np.einsum("mij,mnj->mni", rot, src * mirror) + dst_mean
-        err = np.linalg.norm(out - kp3d, axis=-1).mean(1)
-        if best is None:
-            best, best_err = out, err
-        else:
-            best = np.where((err < best_err)[:, None, None], out, best)
-            best_err = np.minimum(err, best_err)
-    return best
+    aligned = []
+    for src in (shapes, shapes * np.array([1.0, 1.0, -1.0])):
+        src = src - src.mean(1, keepdims=True)
+        rot = baselines._kabsch(src, kp3d - dst_mean)
+        aligned.append(np.einsum("mij,mnj->mni", rot, src) + dst_mean)
+    err = [np.linalg.norm(a - kp3d, axis=-1).mean(1) for a in aligned]
+    return np.where((err[1] < err[0])[:, None, None], aligned[1], aligned[0])
 
 
 def pca_oracle_fit(basis: baselines.ShapeBasis, kp3d: np.ndarray, n_iters: int = 10):
