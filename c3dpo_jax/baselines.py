@@ -67,6 +67,13 @@ def _lift(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int = 0,
     return np.concatenate([xy, depth[..., None]], axis=-1)
 
 
+def visible_mean(x: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """(..., M, C) mean of each view's visible points of ``x`` (..., M, N, C); views with no
+    visible point get 0."""
+    w = np.asarray(vis, np.float64)
+    return np.einsum("mn,...mnc->...mc", w, x) / np.maximum(w.sum(1), 1.0)[:, None]
+
+
 def fit_camera(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray):
     """The scaled orthographic camera of each view: least-squares 2x3 projection of the
     shapes' visible points onto ``kp``, then the nearest scaled orthonormal rows.
@@ -75,11 +82,10 @@ def fit_camera(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray):
     shapes (M, N, 3), kp_mean (M, 2))``: the projection of point n of view m is
     ``scale[m] * rows[m] @ centred[m, n] + kp_mean[m]`` (both means over visible points)."""
     w = vis.astype(np.float64)
-    count = np.maximum(w.sum(1), 1.0)[:, None]
-    kp_mean = (kp * w[..., None]).sum(1) / count
+    kp_mean = visible_mean(kp, w)
     y = (kp - kp_mean[:, None]) * w[..., None]
     shapes = np.broadcast_to(shapes, kp.shape[:2] + (3,))
-    centred = shapes - (np.einsum("mn,mnc->mc", w, shapes) / count)[:, None]
+    centred = shapes - visible_mean(shapes, w)[:, None]
     s = centred * w[..., None]
     sts = np.einsum("mni,mnj->mij", s, s) + 1e-9 * np.eye(3)
     yts = np.einsum("mni,mnj->mij", y, s)
@@ -135,11 +141,9 @@ def fit_shape_basis(model: ShapeBasis, kp: np.ndarray, vis: np.ndarray, n_iters:
             fit_shape_basis(model, kp[i:i + chunk], vis[i:i + chunk], n_iters, chunk)
             for i in range(0, len(kp), chunk)])
     w = vis.astype(np.float64)
-    count = np.maximum(w.sum(1), 1.0)
 
     def centre(x):  # (..., M, N, C): minus each view's visible-point mean, hidden points 0
-        mean = np.einsum("mn,...mnc->...mc", w, x) / count[:, None]
-        return (x - mean[..., None, :]) * w[..., None]
+        return (x - visible_mean(x, w)[..., None, :]) * w[..., None]
 
     m_c = centre(np.broadcast_to(model.mean, kp.shape[:2] + (3,)))
     b_c = centre(np.broadcast_to(model.basis[:, None], (len(model.basis),) + m_c.shape))

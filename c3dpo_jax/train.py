@@ -287,7 +287,7 @@ def _setup(config):
 def _data_parallel_mesh(config) -> Mesh | None:
     """All devices when there are several, unless ``config.train.data_parallel`` is False."""
     n = jax.device_count()
-    if n == 1 or not config.train.get("data_parallel", True):
+    if n == 1 or not config.train.data_parallel:
         return None
     if config.train.batch_size % n:
         logging.warning("batch_size %d is not a multiple of %d devices: training on one device",

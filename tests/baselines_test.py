@@ -105,3 +105,17 @@ def test_pca_basis_fit_is_the_same_in_chunks_and_with_few_training_shapes():
     few = baselines.pca_shape_basis(gt[:3], n_basis=10)  # 3 shapes: at most 2 modes
     assert len(few.basis) == 2 and np.all(few.variances > 0)
     assert np.all(np.isfinite(baselines.fit_shape_basis(few, gt[..., :2], vis)))
+
+
+def test_visible_mean_averages_only_visible_points_with_leading_axes():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(4, 3, 6, 2))  # (B, M, N, C)
+    vis = (rng.uniform(size=(3, 6)) > 0.4).astype(np.float32)
+    vis[1] = 0.0  # a view with nothing visible
+    got = baselines.visible_mean(x, vis)
+    assert got.shape == (4, 3, 2)
+    for b in range(4):
+        for m in range(3):
+            rows = x[b, m][vis[m] > 0]
+            want = rows.mean(0) if len(rows) else np.zeros(2)
+            np.testing.assert_allclose(got[b, m], want, atol=1e-12)

@@ -4,10 +4,13 @@ The check runs in a subprocess because ``--xla_force_host_platform_device_count`
 must be set before JAX starts (this test process has already started it).
 """
 
+import json
 import os
 import subprocess
 import sys
 import textwrap
+
+import pytest
 
 SCRIPT = textwrap.dedent("""
     import jax, numpy as np
@@ -50,11 +53,36 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+           JAX_PLATFORMS="cpu")
+
+
 def test_four_host_devices_match_one_device():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=root, env=env,
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, env=ENV,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "OK" in proc.stdout
+
+
+def _main(workdir, *flags):
+    proc = subprocess.run(
+        [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/synthetic.py:smoke",
+         f"--workdir={workdir}", *flags], cwd=ROOT, env=ENV, capture_output=True, text=True,
+        timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    with open(os.path.join(workdir, "eval_results.json")) as f:
+        return proc.stderr, json.load(f)["final"]
+
+
+def test_main_job_trains_on_four_devices_resumes_and_matches_one(tmp_path):
+    """The user's command on a 4-device host: the batch is split, the sharded state is
+    checkpointed and resumed, and the result is one device's up to float rounding."""
+    par = str(tmp_path / "par")
+    log, _ = _main(par, "--config.train.num_steps=10")
+    assert "data parallel over 4 devices" in log
+    log, final = _main(par)  # the smoke config's 20 steps, from the step-10 checkpoint
+    assert "resumed from the checkpoint at step 10" in log and final["step"] == 20
+    log, single = _main(str(tmp_path / "one"), "--config.train.data_parallel=False")
+    assert "data parallel" not in log and single["step"] == 20
+    assert final["mpjpe"] == pytest.approx(single["mpjpe"], rel=1e-3)

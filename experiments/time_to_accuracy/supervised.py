@@ -30,7 +30,7 @@ from absl import app, flags, logging
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import run  # noqa: E402  (load_dataset and its flags: --dataset, --set, --data_seed, ...)
 
-from c3dpo_jax import evaluation, networks  # noqa: E402
+from c3dpo_jax import baselines, evaluation, networks  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_integer("steps", 25_240, "training steps, rounded up to a multiple of 20 (default: "
@@ -56,21 +56,15 @@ class Lifter(nn.Module):
         return nn.Dense(3 * self.n_keypoints)(feats).reshape(3, self.n_keypoints).T
 
 
-def _visible_mean(kp, vis):
-    """(M, 1, 2) mean of each view's visible points: the lifter's origin in x, y."""
-    count = np.maximum(vis.sum(1, keepdims=True), 1.0)
-    return (kp * vis[..., None]).sum(1, keepdims=True) / count[..., None]
-
-
 def _centred(kp, vis):
-    """Points minus the mean of the visible ones (per view)."""
-    return kp - _visible_mean(kp, vis)
+    """Points minus the mean of the visible ones (per view): the lifter's origin in x, y."""
+    return kp - baselines.visible_mean(kp, vis)[:, None]
 
 
 def _targets(data):
     """Ground truth in the lifter's frame: x, y minus the visible kp mean, depth centred."""
     gt = data.kp3d.astype(np.float64)
-    xy = gt[..., :2] - _visible_mean(data.kp, data.vis)
+    xy = gt[..., :2] - baselines.visible_mean(data.kp, data.vis)[:, None]
     z = gt[..., 2:] - gt[..., 2:].mean(1, keepdims=True)
     return np.concatenate([xy, z], -1).astype(np.float32)
 
@@ -117,7 +111,7 @@ def train_and_evaluate() -> dict:
 
     def score(params, stats):
         out = np.asarray(predict(params, stats), np.float64)
-        kp_mean = _visible_mean(test_data.kp, test_data.vis)
+        kp_mean = baselines.visible_mean(test_data.kp, test_data.vis)[:, None]
         xy = np.where(test_data.vis[..., None] > 0, test_data.kp, out[..., :2] + kp_mean)
         pred = np.concatenate([xy, out[..., 2:]], -1)
         return evaluation.evaluate(pred, test_data, protocol)["mpjpe"]
