@@ -160,3 +160,34 @@ def test_learnt_basis_spans_the_shape_layer():
         np.testing.assert_allclose(basis.mean + (coef @ flat).reshape(7, 3), shape, atol=1e-5)
     # Prior variances: those of the coefficients of ``alpha`` in the orthonormal frame.
     np.testing.assert_allclose(basis.variances, coefs.var(0), rtol=1e-4)
+
+
+def test_compare_pairs_seeds_at_the_budget_and_draws_them(tmp_path):
+    def write(name, dataset, seed, mpjpes):  # evaluations at t = 100, 300, 600 s
+        curve = [{"t": t, "step": i, "mpjpe": m} for i, (t, m) in enumerate(
+            zip((100.0, 300.0, 600.0), mpjpes))]
+        run = {"dataset": dataset, "seed": seed, "curve": curve,
+               "baselines": {"fitted mean shape": {"a": 0.5, "b": 0.9}[dataset]}}
+        (tmp_path / name).write_text(json.dumps(run))
+
+    write("a__x__s0.json", "a", 0, (0.9, 0.30, 0.20))
+    write("a__x__s1.json", "a", 1, (0.9, 0.50, 0.40))
+    write("b__x__s0.json", "b", 0, (0.9, 0.70, 0.60))
+    write("a__y__s0.json", "a", 0, (0.9, 0.15, 0.10))
+    write("a__y__s1.json", "a", 1, (0.9, 0.60, 0.50))
+    fig = tmp_path / "cmp.png"
+    out = subprocess.run(
+        [sys.executable, os.path.join(EXP, "compare.py"), f"x={tmp_path}/*__x__*.json",
+         f"y={tmp_path}/*__y__*.json", "--at=200", f"--figure={fig}"],
+        capture_output=True, text=True, timeout=120, check=True).stdout
+    cells = [line.strip("| ").split(" | ") for line in out.splitlines()]
+    rows = {c[0]: c for c in cells if c[0] in ("a", "b")}
+    # At 200 s every run reports its 300 s evaluation (the first at or after the budget).
+    assert rows["a"][1] == "0.3000 / 0.5000 (0.4000)"
+    assert rows["a"][2] == "0.1500 / 0.6000 (0.3750)"
+    assert rows["a"][3] == f"{100 * np.mean([0.15 / 0.3 - 1, 0.6 / 0.5 - 1]):+.0f}% (2)"
+    assert rows["b"][2] == "-" and rows["b"][3] == "-" and rows["b"][4] == "0.9000"
+    assert fig.stat().st_size > 10_000
+    bad = subprocess.run([sys.executable, os.path.join(EXP, "compare.py"),
+                          f"x={tmp_path}/nothing*.json"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "no file matches" in bad.stderr
