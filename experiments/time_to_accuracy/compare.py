@@ -3,7 +3,7 @@
   python experiments/time_to_accuracy/compare.py \\
       "0.1=results/*__cpu__s*.json" \\
       "0.2=results/search/*__cpu_eq02__s*.json" \\
-      "0.3925=results/search/*__cpu_eq03925__s*.json" [--at=600] [--figure=PATH]
+      "0.3925=results/search/*__cpu_eq03925__s*.json" [--at=600] [--figure=PATH] [--xlabel=..]
 
 Each argument is ``LABEL=GLOB`` (relative paths from this folder): run.py results of one
 setting. Prints a markdown table (per setting: the seeds' MPJPE at ``--at`` seconds in
@@ -63,7 +63,8 @@ def table(labels: list[str], values: dict, fitted: dict) -> str:
     return "\n".join(lines)
 
 
-def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float) -> None:
+def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float,
+           xlabel: str = "") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,6 +85,7 @@ def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float) 
         ax.axhline(fitted[d] / 2, color="C3", linestyle="--", label="target: fitted mean / 2")
         ax.set_xticks(x, labels)
         ax.set_title(d)
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(f"test MPJPE at {at / 60:g} min")
     for ax in axes.flat[len(datasets):]:
         ax.axis("off")
@@ -98,11 +100,12 @@ def main() -> None:
     parser.add_argument("settings", nargs="+", help="LABEL=GLOB, the first is the reference")
     parser.add_argument("--at", type=float, default=600.0, help="budget in seconds")
     parser.add_argument("--figure", default="", help="also draw the table here (.png)")
+    parser.add_argument("--xlabel", default="", help="the figure's name for the settings")
     args = parser.parse_args()
     labels, values, fitted = load_settings(args.settings, args.at)
     print(table(labels, values, fitted))
     if args.figure:
-        figure(labels, values, fitted, args.figure, args.at)
+        figure(labels, values, fitted, args.figure, args.at, args.xlabel)
         print(f"figure: {args.figure}")
 
 
