@@ -2,7 +2,7 @@
 
 Trains (resuming from DIR when it holds checkpoints) and evaluates, or with
 ``--mode=eval`` scores the latest checkpoint in DIR. Any config field can be set with
-``--config.section.field=value``.
+``--config.section.field=value``; ``--nofigures`` skips the pictures written after training.
 """
 
 import logging as py_logging
@@ -19,6 +19,9 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string("workdir", None, "Directory for checkpoints, metrics and results.")
 _MODE = flags.DEFINE_enum(
     "mode", "train", ["train", "eval"], "Train then evaluate, or evaluate only."
+)
+_FIGURES = flags.DEFINE_bool(
+    "figures", True, "After training, write pictures into WORKDIR/figures (--nofigures: skip)."
 )
 flags.mark_flags_as_required(["config", "workdir"])
 
@@ -48,7 +51,8 @@ def main(argv):
     logging.info("config:\n%s", config)
     if _MODE.value == "train":
         results = train.train_and_evaluate(config, _WORKDIR.value)
-        _write_figures(config, _WORKDIR.value)
+        if _FIGURES.value:
+            _write_figures(config, _WORKDIR.value)
     else:
         results = train.evaluate_checkpoint(config, _WORKDIR.value)
     rows = {"C3DPO": results["final"], **results.get("baselines", {})}

@@ -4,4 +4,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/ruff check --quiet .  # lint: pyproject's [tool.ruff] rules (line length 100, imports)
-exec .venv/bin/python -m pytest "$@"
+# Two worker processes (pytest-xdist): most of the suite is XLA compilation, which uses
+# one core at a time, so two workers keep both cores of a small machine busy.
+exec .venv/bin/python -m pytest -n "${PYTEST_WORKERS:-2}" --dist worksteal "$@"

@@ -1,9 +1,49 @@
-"""Shared test set-up: strict numpy rank promotion, keys, tiny configs."""
+"""Shared test set-up: strict numpy rank promotion, keys, a compilation cache.
+
+The suite compiles the same programs many times (the main job is run again to
+resume it, the same tiny configs train in several tests, and every subprocess
+starts a fresh JAX), and XLA compilation is most of its time on a 2-core CPU. So
+the test session uses JAX's persistent compilation cache in a directory of its
+own: made empty for each session (no state survives between runs), shared by the
+pytest-xdist workers and, through the environment, by the subprocesses the tests
+start. A cache hit returns the executable the compiler made for the identical
+program, so no test checks anything different; the library itself never turns
+the cache on.
+"""
+
+import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+_MADE_CACHE_DIR = None  # set in the process that made the directory (it removes it)
+
+
+def _compilation_cache_dir() -> str:
+    # xdist workers inherit the controller's environment: the first process of the
+    # session makes the directory, the workers and subprocesses reuse it.
+    global _MADE_CACHE_DIR
+    path = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if not path:
+        path = _MADE_CACHE_DIR = tempfile.mkdtemp(prefix="c3dpo_jax_test_xla_cache_")
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = path
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+    return path
+
+
+jax.config.update("jax_compilation_cache_dir", _compilation_cache_dir())
+jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                  float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _MADE_CACHE_DIR is not None:  # the controller, after every worker has finished
+        shutil.rmtree(_MADE_CACHE_DIR, ignore_errors=True)
 
 
 @pytest.fixture

@@ -24,6 +24,7 @@ def _batch(n=6, seed=0):
     return data, {k: jnp.asarray(v) for k, v in data.model_inputs().items()}
 
 
+@partial(jax.jit, static_argnums=0)  # one compile per config instead of op-by-op dispatch
 def _train_terms(cfg, variables, batch, key):
     keys = jax.random.split(key, batch["vis"].shape[0])
     fn = partial(model.forward_train, cfg=cfg)
