@@ -15,19 +15,21 @@ def _read(*parts):
         return f.read()
 
 
-# The smoke models' runs are mostly XLA compilation: LLVM optimisation level 0 about halves
-# it (the in-process tests compile the training step as users do).
-ENV = dict(os.environ, XLA_FLAGS="--xla_backend_optimization_level=0")
+@pytest.fixture
+def run_main(smoke_subprocess_env):
+    """``run_main(*args)``: the main job in a subprocess (smoke-sized models only)."""
+    env = smoke_subprocess_env()
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "c3dpo_jax.main", *args], cwd=ROOT,
+                              env=env, capture_output=True, text=True, timeout=600)
+
+    return run
 
 
-def _run(*args):
-    return subprocess.run([sys.executable, "-m", "c3dpo_jax.main", *args], cwd=ROOT, env=ENV,
-                          capture_output=True, text=True, timeout=600)
-
-
-def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path):
+def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     workdir = str(tmp_path / "run")
-    first = _run("--config=configs/synthetic.py:smoke", f"--workdir={workdir}")
+    first = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}")
     assert first.returncode == 0, first.stderr[-3000:]
     assert "fitted mean shape" in first.stdout and "C3DPO" in first.stdout
     assert "training_curves.png" in os.listdir(os.path.join(workdir, "figures"))
@@ -37,11 +39,12 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path):
     assert len(lines) == 4 and json.loads(lines[-1])["step"] == 20
     assert json.loads(_read(workdir, "config.json"))["model"]["n_fully_connected"] == 32
     # Running the same command again resumes at the end: nothing is retrained.
-    again = _run("--config=configs/synthetic.py:smoke", f"--workdir={workdir}", "--nofigures")
+    again = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}", "--nofigures")
     assert again.returncode == 0, again.stderr[-3000:]
     assert "resumed from the checkpoint at step 20" in again.stderr
     assert len(_read(workdir, "metrics.jsonl").splitlines()) == 4
-    evaluated = _run("--config=configs/synthetic.py:smoke", f"--workdir={workdir}", "--mode=eval")
+    evaluated = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                         "--mode=eval")
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     reevaluated = json.loads(_read(workdir, "eval_results.json"))
     assert reevaluated["final"]["mpjpe"] == pytest.approx(results["final"]["mpjpe"], rel=1e-5)
@@ -49,8 +52,8 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path):
     assert results["history"], "the smoke run evaluates at its epoch ends"
 
 
-def test_wrong_keypoint_count_is_a_clear_error(tmp_path):
-    out = _run("--config=configs/synthetic.py:smoke", f"--workdir={tmp_path}",
+def test_wrong_keypoint_count_is_a_clear_error(tmp_path, run_main):
+    out = run_main("--config=configs/synthetic.py:smoke", f"--workdir={tmp_path}",
                "--config.model.n_keypoints=7")
     assert out.returncode != 0
     assert "config.model.n_keypoints=20" in out.stderr
@@ -63,7 +66,7 @@ def _write_release_json(path, data):
         json.dump(entries, f)
 
 
-def test_release_config_trains_on_json_files_and_resumes(tmp_path):
+def test_release_config_trains_on_json_files_and_resumes(tmp_path, run_main):
     from c3dpo_jax.data import synthetic
 
     train, test = synthetic.make_splits(n_keypoints=79, n_train=64, n_test=16, seed=3)
@@ -73,11 +76,11 @@ def test_release_config_trains_on_json_files_and_resumes(tmp_path):
             f"--config.data.train_path={tmp_path / 'a.json'}",
             f"--config.data.test_path={tmp_path / 'b.json'}", "--nofigures",
             "--config.train.num_steps=10"]
-    first = _run(*args)
+    first = run_main(*args)
     assert first.returncode == 0, first.stderr[-3000:]
     assert "(16 samples, protocol 'default')" in first.stdout
     args[-1] = "--config.train.num_steps=20"  # continue the same run further
-    second = _run(*args)
+    second = run_main(*args)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "resumed from the checkpoint at step 10" in second.stderr
     assert json.loads(_read(str(tmp_path / "run"), "eval_results.json"))["final"]["step"] == 20

@@ -36,12 +36,14 @@ SCRIPT = textwrap.dedent("""
         if mesh is not None:
             state, dev = train.replicate(state, mesh), train.replicate(dev, mesh)
         chunk = jax.jit(train.make_train_chunk(step, 32, mesh), static_argnames="n_steps")
-        history = []  # 8 one-step calls: one compile per mesh (the batches depend only
-        for _ in range(8):  # on the step, so this is the 8-step chunk's trajectory)
+        # 8 one-step calls: one compile per mesh (batches depend only on the step, so
+        # this is the trajectory of an 8-step chunk).
+        first, m = chunk(state, dev, key, n_steps=1)
+        state, steps = first, [m]
+        for _ in range(7):
             state, m = chunk(state, dev, key, n_steps=1)
-            history.append((state, m))
-        metrics = {k: np.concatenate([np.asarray(m[k]) for _, m in history]) for k in history[0][1]}
-        runs[name] = (history[0][0], metrics)
+            steps.append(m)
+        runs[name] = (first, jax.tree.map(lambda *a: np.concatenate(a), *steps))
         if mesh is not None:
             assert len(state.params["alpha_layer"]["kernel"].sharding.device_set) == 4
     # Step 0 agrees to float rounding; later steps drift as SGD amplifies rounding.
@@ -67,37 +69,39 @@ SCRIPT = textwrap.dedent("""
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# LLVM optimisation level 0 compiles these tiny models in about half the time (their
-# runtime is negligible); the in-process tests compile the same step as users do.
-ENV = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=4"
-           " --xla_backend_optimization_level=0")
 
 
-def test_four_host_devices_match_one_device():
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, env=ENV,
+@pytest.fixture
+def env(smoke_subprocess_env):
+    return dict(smoke_subprocess_env("--xla_force_host_platform_device_count=4"),
+                JAX_PLATFORMS="cpu")
+
+
+def test_four_host_devices_match_one_device(env):
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "OK" in proc.stdout
 
 
-def _main(workdir, *flags):
+def _main(env, workdir, *flags):
     proc = subprocess.run(
         [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/synthetic.py:smoke",
          f"--workdir={workdir}", "--nofigures", *flags],
-        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     with open(os.path.join(workdir, "eval_results.json")) as f:
         return proc.stderr, json.load(f)["final"]
 
 
-def test_main_job_trains_on_four_devices_resumes_and_matches_one(tmp_path):
+def test_main_job_trains_on_four_devices_resumes_and_matches_one(tmp_path, env):
     """The user's command on a 4-device host: the batch is split, the sharded state is
     checkpointed and resumed, and the result is one device's up to float rounding."""
     par = str(tmp_path / "par")
-    log, _ = _main(par, "--config.train.num_steps=10")
+    log, _ = _main(env, par, "--config.train.num_steps=10")
     assert "data parallel over 4 devices" in log
-    log, final = _main(par)  # the smoke config's 20 steps, from the step-10 checkpoint
+    log, final = _main(env, par)  # the smoke config's 20 steps, from the step-10 checkpoint
     assert "resumed from the checkpoint at step 10" in log and final["step"] == 20
-    log, single = _main(str(tmp_path / "one"), "--config.train.data_parallel=False")
+    log, single = _main(env, str(tmp_path / "one"), "--config.train.data_parallel=False")
     assert "data parallel" not in log and single["step"] == 20
     assert final["mpjpe"] == pytest.approx(single["mpjpe"], rel=1e-3)
