@@ -121,14 +121,12 @@ def _peak_memory_mb() -> dict[str, float]:
     return out
 
 
-def _time_train(config, model_cfg, tx, data, steps: int,
+def _time_train(spec: train.RunSpec, data, steps: int,
                 chunk_steps: int = 1) -> dict[str, float]:
-    batch = config.train.batch_size
     mesh = train.make_mesh() if jax.device_count() > 1 else None
-    step_fn = train.make_train_step(model_cfg, train.LossConfig(**config.loss), tx)
-    chunk = jax.jit(train.make_train_chunk(step_fn, batch, mesh), static_argnames="n_steps",
-                    donate_argnums=0)
-    state = create_train_state(jax.random.key(0), model_cfg, tx)
+    chunk = jax.jit(train.make_train_chunk(spec.train_step(), spec.batch_size, mesh),
+                    static_argnames="n_steps", donate_argnums=0)
+    state = create_train_state(jax.random.key(0), spec.model, spec.optimizer())
     if mesh is not None:  # data parallel over every device, as train_and_evaluate does
         state, data = train.replicate(state, mesh), train.replicate(data, mesh)
     key = jax.random.key(1)
@@ -147,7 +145,7 @@ def _time_train(config, model_cfg, tx, data, steps: int,
         raise FloatingPointError("non-finite loss in the benchmark")
     step_s = statistics.median(times) / chunk_steps
     return {"compile_s": compile_s, "chunk_steps": chunk_steps, "step_s": step_s,
-            "steps_per_s": 1.0 / step_s, "train_samples_per_s": batch / step_s}
+            "steps_per_s": 1.0 / step_s, "train_samples_per_s": spec.batch_size / step_s}
 
 
 def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str, float]:
@@ -167,7 +165,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
     """Runs every measurement for ``config``; returns a flat dict (see the module docstring)."""
     if chunk_steps < 1:
         raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
-    model_cfg, _, _, _, tx = train._setup(config)
+    spec = train.RunSpec.from_config(config)
+    model_cfg, tx = spec.model, spec.optimizer()
     batch = config.train.batch_size
     host = random_data(model_cfg, max(4 * batch, eval_batch))
     data = jax.device_put(host)
@@ -176,7 +175,7 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
            "jax_version": jax.__version__, "platform": platform.platform(),
            "load_avg_1m": os.getloadavg()[0],
            "matmul_precision": model_cfg.matmul_precision}
-    res.update(_time_train(config, model_cfg, tx, data, steps, chunk_steps))
+    res.update(_time_train(spec, data, steps, chunk_steps))
     variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
                                jax.devices()[0])
     res.update(_time_eval(model_cfg, variables, host, eval_batch, repeats))

@@ -14,14 +14,19 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
   optimiser state and the training arrays stay replicated; XLA (GSPMD) partitions the
   vmapped step and turns BatchNorm's batch means and the gradient sums into
   all-reduces, so results equal one device's up to float rounding.
-- ``train_and_evaluate(config, workdir)``: the loop (progress bar, metrics.jsonl,
-  orbax checkpoints and resume, evaluation at epoch ends and at the end).
+- ``RunSpec.from_config(config)``: the frozen description of a run (model, optimiser,
+  loss weights, batch size, step counts) that the loop, the benchmark and the
+  experiments build their steps from.
+- ``train_and_evaluate(config, workdir, hooks)``: the loop (progress bar, metrics.jsonl,
+  orbax checkpoints and resume, evaluation every ``eval_every`` steps and at the end);
+  ``Hooks`` lets experiments observe it and stop it early (e.g. at a time budget).
 """
 
 import dataclasses
 import json
 import os
 import time
+from collections.abc import Callable
 from functools import partial
 
 import jax
@@ -33,7 +38,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from c3dpo_jax import baselines, checkpoint, evaluation, losses, model
-from c3dpo_jax.data import KeypointData, load_splits
+from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -275,13 +280,57 @@ def _read_results(workdir: str) -> dict:
         return json.load(f)
 
 
-def _setup(config):
-    model_cfg = model.ModelConfig.from_dict(config.model)
-    optim_cfg = OptimConfig.from_dict(config.optim)
-    steps_per_epoch = max(config.train.samples_per_epoch // config.train.batch_size, 1)
-    total = config.train.num_steps or config.train.epochs * steps_per_epoch
-    tx = make_optimizer(optim_cfg, steps_per_epoch)
-    return model_cfg, optim_cfg, steps_per_epoch, total, tx
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """What a config asks the training loop to do, resolved once (no ml_collections below).
+
+    ``total_steps`` is ``train.num_steps`` or ``epochs * steps_per_epoch``; ``eval_every``
+    is in steps (``train.eval_every_steps``, else ``eval_every_epochs`` epochs; 0: only the
+    final evaluation)."""
+
+    model: model.ModelConfig
+    optim: OptimConfig
+    loss: LossConfig
+    batch_size: int
+    steps_per_epoch: int
+    total_steps: int
+    eval_every: int
+
+    @classmethod
+    def from_config(cls, config) -> "RunSpec":
+        t = config.train
+        steps_per_epoch = max(t.samples_per_epoch // t.batch_size, 1)
+        eval_every = t.get("eval_every_steps", 0) or t.eval_every_epochs * steps_per_epoch
+        return cls(model=model.ModelConfig.from_dict(config.model),
+                   optim=OptimConfig.from_dict(config.optim), loss=LossConfig(**config.loss),
+                   batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
+                   total_steps=t.num_steps or t.epochs * steps_per_epoch,
+                   eval_every=eval_every)
+
+    def optimizer(self) -> optax.GradientTransformation:
+        return make_optimizer(self.optim, self.steps_per_epoch)
+
+    def schedule(self) -> optax.Schedule:
+        return make_schedule(self.optim, self.steps_per_epoch)
+
+    def train_step(self):
+        """The pure ``train_step(state, batch, key)`` of this run (``make_train_step``)."""
+        return make_train_step(self.model, self.loss, self.optimizer(), self.schedule())
+
+
+@dataclasses.dataclass(frozen=True)
+class Hooks:
+    """Optional host-side callbacks of ``train_and_evaluate`` (experiments, notebooks).
+
+    ``after_chunk(step, state)`` after every compiled chunk (the state is still being
+    computed: fetching from it waits); ``after_evaluation(record, state)`` after each test
+    evaluation, with the record appended to the history; ``should_stop(step, train_s)``,
+    asked after every chunk with the training seconds so far: True ends training early
+    (checkpoint and final evaluation at that step; running again resumes to the end)."""
+
+    after_chunk: Callable[[int, TrainState], None] | None = None
+    after_evaluation: Callable[[dict, TrainState], None] | None = None
+    should_stop: Callable[[int, float], bool] | None = None
 
 
 def _data_parallel_mesh(config) -> Mesh | None:
@@ -297,65 +346,104 @@ def _data_parallel_mesh(config) -> Mesh | None:
     return make_mesh(n)
 
 
-def train_and_evaluate(config, workdir: str) -> dict:
+def resolve_input_scale(config, train_data: KeypointData):
+    """``model.keypoint_rescale = 0`` means "from the data": a copy of ``config`` with the
+    value ``auto_keypoint_rescale`` gives for the training split (written to config.json,
+    so inference uses the same number); other values are returned unchanged."""
+    if config.model.keypoint_rescale != 0:
+        return config
+    config = config.copy_and_resolve_references()
+    config.model.keypoint_rescale = auto_keypoint_rescale(train_data)
+    logging.info("input scale from the training data: model.keypoint_rescale=%.6g",
+                 config.model.keypoint_rescale)
+    return config
+
+
+def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
 
-    Returns the final ``eval_results.json`` content (also written to ``workdir``).
+    Every evaluation record carries ``train_s``: seconds of training so far (compilation
+    and metric logging included; evaluation, checkpoint writing and data loading excluded;
+    a resumed run continues the clock of its last record). Returns the final
+    ``eval_results.json`` content (also written to ``workdir``).
     """
+    hooks = hooks or Hooks()
     os.makedirs(workdir, exist_ok=True)
-    model_cfg, optim_cfg, steps_per_epoch, total, tx = _setup(config)
+    train_data, test_data = load_splits(config.data)
+    config = resolve_input_scale(config, train_data)
+    spec = RunSpec.from_config(config)
     saved = checkpoint.load_config(workdir)
     if saved is not None and saved.get("model") != config.model.to_dict():
         raise ValueError(f"{workdir} holds a run with other model settings; use a new --workdir")
     checkpoint.save_config(workdir, config.to_dict())
-    train_data, test_data = load_splits(config.data)
-    _check_data(train_data, model_cfg, "train")
-    _check_data(test_data, model_cfg, "test")
+    _check_data(train_data, spec.model, "train")
+    _check_data(test_data, spec.model, "test")
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
-    state = checkpoint.restore_or_init(manager, create_train_state(init_key, model_cfg, tx))
-    step = int(state.step)
+    state = checkpoint.restore_or_init(
+        manager, create_train_state(init_key, spec.model, spec.optimizer()))
+    step, total = int(state.step), spec.total_steps
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     data = device_train_data(train_data, config.data.class_balanced)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = replicate(state, mesh), replicate(data, mesh)
-    schedule = make_schedule(optim_cfg, steps_per_epoch)
-    train_step = make_train_step(model_cfg, LossConfig(**config.loss), tx, schedule)
-    chunk = jax.jit(make_train_chunk(train_step, config.train.batch_size, mesh),
+    chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh),
                     static_argnames="n_steps", donate_argnums=0)
-    eval_fn = jax.jit(make_eval_fn(model_cfg))
+    eval_fn = jax.jit(make_eval_fn(spec.model))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
-    eval_every = config.train.eval_every_epochs * steps_per_epoch
+
+    def evaluate(state, step):
+        res = evaluate_split(state.variables, test_data, spec.model, protocol, eval_fn, eval_bs)
+        return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
+
     # A resumed run keeps the evaluations made before its checkpoint.
     history = [h for h in _read_results(workdir).get("history", []) if h["step"] <= step]
+    train_s = history[-1].get("train_s", 0.0) if history else 0.0
     pbar = tqdm(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
     writer = _MetricsWriter(workdir, pbar)
+    tic = time.perf_counter()
     while step < total:
-        stop = _next_stop(
-            step, total, (config.train.log_every, config.train.ckpt_every, eval_every)
-        )
+        stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
+                                        spec.eval_every))
         state, metrics = chunk(state, data, train_key, n_steps=stop - step)
         writer.push(step, metrics)
         step = stop
-        if step % config.train.ckpt_every == 0 or step == total:
-            writer.flush()  # never checkpoint a state whose losses were not checked
-            checkpoint.save(manager, step, state, force=step == total)
-        if eval_every and step % eval_every == 0 and step < total:
-            writer.flush()
-            res = evaluate_split(state.variables, test_data, model_cfg, protocol, eval_fn, eval_bs)
-            history.append(dict(step=step, epoch=step // steps_per_epoch, **res))
-            logging.info("epoch %d: test %s", step // steps_per_epoch,
-                         {k: v for k, v in res.items() if k != "per_group"})
-            _write_results(workdir, {"history": history})
+        if hooks.after_chunk is not None:
+            hooks.after_chunk(step, state)
+        stopping = hooks.should_stop is not None and hooks.should_stop(
+            step, train_s + time.perf_counter() - tic)
+        evaluating = spec.eval_every and step % spec.eval_every == 0 and step < total
+        if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
+            writer.flush()  # never checkpoint or score a state whose losses were not checked
+            train_s += time.perf_counter() - tic
+            if step % config.train.ckpt_every == 0 or step == total or stopping:
+                checkpoint.save(manager, step, state, force=step == total or stopping)
+            if evaluating:
+                history.append(evaluate(state, step))
+                logging.info("step %d: test %s", step,
+                             {k: v for k, v in history[-1].items() if k != "per_group"})
+                _write_results(workdir, {"history": history})
+                if hooks.after_evaluation is not None:
+                    hooks.after_evaluation(history[-1], state)
+            tic = time.perf_counter()
+        if stopping:
+            logging.info("stopped early at step %d of %d", step, total)
+            break
     writer.flush()
+    train_s += time.perf_counter() - tic
     pbar.close()
     manager.wait_until_finished()
     manager.close()
-    final = evaluate_split(state.variables, test_data, model_cfg, protocol, eval_fn, eval_bs)
-    results = {"history": history, "final": dict(step=step, **final),
+    if history and history[-1]["step"] == step:  # stopped at an evaluation: no second one
+        final = history[-1]
+    else:
+        final = evaluate(state, step)
+        if hooks.after_evaluation is not None:
+            hooks.after_evaluation(final, state)
+    results = {"history": history, "final": final,
                "baselines": baseline_results(train_data, test_data, protocol)}
     _write_results(workdir, results)
     return results
@@ -366,10 +454,16 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
 
     Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays.
     """
-    model_cfg, _, _, _, tx = _setup(config)
-    template = create_train_state(jax.random.key(0), model_cfg, tx)
-    state, step = checkpoint.restore_latest(workdir, template)
     train_data, test_data = load_splits(config.data)
+    saved = checkpoint.load_config(workdir) or {}
+    if config.model.keypoint_rescale == 0 and "model" in saved:  # the value training used
+        config = config.copy_and_resolve_references()
+        config.model.keypoint_rescale = saved["model"]["keypoint_rescale"]
+    config = resolve_input_scale(config, train_data)
+    spec = RunSpec.from_config(config)
+    model_cfg = spec.model
+    template = create_train_state(jax.random.key(0), model_cfg, spec.optimizer())
+    state, step = checkpoint.restore_latest(workdir, template)
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(state.variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)

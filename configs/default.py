@@ -70,6 +70,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         log_every=50,
         ckpt_every=1000,
         eval_every_epochs=1,  # 0 disables evaluation at epoch ends
+        eval_every_steps=0,  # > 0 overrides eval_every_epochs
         eval_batch_size=1024,
         progress_bar=True,
         data_parallel=True,  # split each batch over all devices when there are several

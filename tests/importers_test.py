@@ -112,3 +112,30 @@ def test_sequence_round_trip_trains(tmp_path):
     results = train.train_and_evaluate(c, str(tmp_path / "run"))
     assert results["final"]["step"] == 20 and np.isfinite(results["final"]["mpjpe"])
     assert (tmp_path / "seq_train.c3dpo_cache.npz").exists()
+
+
+def test_clip_split_holds_out_blocks_of_every_clip_or_whole_clips():
+    clip = np.repeat([0, 1, 2, 3], [30, 50, 20, 40])
+    test = importers.clip_split(clip, 0.2, 5, seed=3)
+    for c in range(4):  # a fifth of every clip, as one contiguous block
+        frames = np.flatnonzero(test & (clip == c))
+        assert len(frames) == round((clip == c).sum() / 5)
+        assert np.ptp(frames) == len(frames) - 1
+    whole = importers.clip_split(clip, 0.5, 5, seed=3, hold_out="clips")
+    held = {c for c in range(4) if whole[clip == c].all()}
+    assert len(held) == 2 and all(not whole[clip == c].any() for c in set(range(4)) - held)
+    with pytest.raises(ValueError, match="at least two clips"):
+        importers.clip_split(np.zeros(10, int), 0.2, 5, seed=0, hold_out="clips")
+
+
+def test_views_from_sequence_with_clips_and_the_npz_clip_array(tmp_path):
+    x = _sequence(f=60)
+    clip = np.repeat([0, 1, 2], 20)
+    np.savez(tmp_path / "s.npz", X=np.swapaxes(x, 1, 2), clip=clip)
+    loaded = importers.load_clips(str(tmp_path / "s.npz"))
+    np.testing.assert_array_equal(loaded, clip)
+    train_d, test_d = importers.views_from_sequence(x, views_per_frame=2, clip=loaded,
+                                                    hold_out="clips", test_fraction=0.3)
+    assert len(test_d) == 20 * 2 and len(train_d) == 40 * 2
+    with pytest.raises(ValueError, match="clip has shape"):
+        importers.views_from_sequence(x, clip=clip[:5])

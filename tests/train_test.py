@@ -147,11 +147,31 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path):
     resumed = train.train_and_evaluate(_tiny_config(20), str(tmp_path / "split"))
     assert resumed["final"]["step"] == whole["final"]["step"] == 20
     cfg = _tiny_config(20)
-    model_cfg, _, _, _, tx = train._setup(cfg)
-    template = create_train_state(jax.random.key(0), model_cfg, tx)
+    spec = train.RunSpec.from_config(cfg)
+    template = create_train_state(jax.random.key(0), spec.model, spec.optimizer())
     a, _ = checkpoint.restore_latest(str(tmp_path / "whole"), template)
     b, _ = checkpoint.restore_latest(str(tmp_path / "split"), template)
     chex.assert_trees_all_close(a, b, atol=1e-6)
+    assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
+
+
+def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path):
+    c = _tiny_config(20)
+    c.train.eval_every_steps = 5
+    whole = train.train_and_evaluate(c, str(tmp_path / "whole"))
+    assert [h["step"] for h in whole["history"]] == [5, 10, 15]
+    times = [h["train_s"] for h in whole["history"]] + [whole["final"]["train_s"]]
+    assert all(0 < a <= b for a, b in zip(times, times[1:], strict=False))
+    seen, chunks = [], []
+    hooks = train.Hooks(after_chunk=lambda step, state: chunks.append(step),
+                        after_evaluation=lambda record, state: seen.append(
+                            (record["step"], int(state.step))),
+                        should_stop=lambda step, train_s: step >= 10)
+    stopped = train.train_and_evaluate(c, str(tmp_path / "split"), hooks)
+    assert stopped["final"]["step"] == 10 and seen == [(5, 5), (10, 10)]
+    assert chunks == sorted(chunks) and chunks[-1] == 10
+    resumed = train.train_and_evaluate(c, str(tmp_path / "split"))
+    assert [h["step"] for h in resumed["history"]] == [5, 10, 15]
     assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
 
 

@@ -1,5 +1,5 @@
 """Datasets as numpy arrays: the release's JSON files and built-in generated data."""
 
-from c3dpo_jax.data.dataset import KeypointData, load_splits
+from c3dpo_jax.data.dataset import KeypointData, auto_keypoint_rescale, load_splits
 
-__all__ = ["KeypointData", "load_splits"]
+__all__ = ["KeypointData", "auto_keypoint_rescale", "load_splits"]

@@ -69,6 +69,30 @@ class KeypointData:
         return out
 
 
+def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0) -> float:
+    """The ``model.keypoint_rescale`` that gives the views' 2D points, centred on their
+    visible mean, a median RMS radius of ``target_rms``.
+
+    The paper scales the centred 2D points of a dataset so that their extent is about
+    [-1, 1]; the median over views of the RMS radius is a robust form of that rule, the
+    same in any units. Points are calibrated with ``intrinsics`` first when the data has
+    them (what a perspective model sees)."""
+    kp, vis = np.asarray(data.kp, np.float64), np.asarray(data.vis, np.float64)
+    if data.intrinsics is not None:
+        homo = np.concatenate([kp, np.ones_like(kp[..., :1])], -1)
+        cal = np.einsum("mij,mnj->mni", np.linalg.inv(data.intrinsics.astype(np.float64)), homo)
+        kp = cal[..., :2] / cal[..., 2:]
+    count = vis.sum(1)
+    mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
+    sq = np.einsum("mn,mn->m", vis, ((kp - mean[:, None]) ** 2).sum(-1))
+    radius = np.sqrt(sq[count > 1] / count[count > 1])
+    radius = radius[np.isfinite(radius) & (radius > 0)]
+    if radius.size == 0:
+        raise ValueError(f"{data.name or 'the training data'}: no view has two distinct visible "
+                         "points, so the input scale cannot be set; set model.keypoint_rescale")
+    return float(target_rms / np.median(radius))
+
+
 def load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
     """Returns ``(train, test)`` for a ``config.data`` section.
 

@@ -70,6 +70,41 @@ def frame_blocks_split(n_frames: int, test_fraction: float, n_blocks: int, seed:
     return np.isin(block, test_blocks)
 
 
+def clip_split(clip: np.ndarray, test_fraction: float, n_blocks: int, seed: int,
+               hold_out: str = "blocks") -> np.ndarray:
+    """Boolean test mask over frames labelled with clip ids ``clip`` (F,).
+
+    ``hold_out="blocks"``: each clip is cut into ``n_blocks`` contiguous blocks and a
+    ``test_fraction`` of each clip's blocks are test (unseen stretches of every motion);
+    ``"clips"``: a ``test_fraction`` of the clips (at least one, never all) are test
+    (unseen motions)."""
+    clip = np.asarray(clip)
+    ids = np.unique(clip)
+    rng = np.random.default_rng(seed)
+    if hold_out == "clips":
+        if len(ids) < 2:
+            raise ValueError("hold_out='clips' needs at least two clips")
+        n_test = min(max(1, round(test_fraction * len(ids))), len(ids) - 1)
+        return np.isin(clip, rng.choice(ids, n_test, replace=False))
+    if hold_out != "blocks":
+        raise ValueError(f"hold_out must be 'blocks' or 'clips', got {hold_out!r}")
+    test = np.zeros(len(clip), bool)
+    for c in ids:
+        frames = np.flatnonzero(clip == c)
+        if len(frames) >= 2:
+            test[frames] = frame_blocks_split(len(frames), test_fraction, n_blocks,
+                                              int(rng.integers(2**31)))
+    return test
+
+
+def load_clips(path: str, key: str = "clip") -> np.ndarray | None:
+    """The per-frame clip ids (F,) of an ``.npz`` sequence, or None when it has none."""
+    if not path.endswith(".npz"):
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        return np.asarray(z[key]) if key in z.files else None
+
+
 def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_visible, rng,
            name, scale):
     f, k, _ = x.shape
@@ -89,8 +124,12 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
                         max_elevation: float | int = 0.5, test_fraction: float | int = 0.2,
                         n_blocks: int = 10, occlusion: float | int = 0.0, noise: float | int = 0.0,
                         min_visible: int = 3, normalise: bool = True, seed: int = 0,
-                        name: str = "sequence") -> tuple[KeypointData, KeypointData]:
+                        name: str = "sequence", clip: np.ndarray | None = None,
+                        hold_out: str = "blocks") -> tuple[KeypointData, KeypointData]:
     """(train, test) views of a 3D sequence ``x`` (F, K, 3), split by frame blocks.
+
+    With per-frame clip ids ``clip`` (F,) (concatenated clips) the split respects the clips
+    (``clip_split``: blocks inside every clip, or whole clips with ``hold_out="clips"``).
 
     ``scale`` of each sample holds the factor that was divided out, so errors times
     ``scale`` are in the sequence's units. ``noise`` is 2D noise in normalised units.
@@ -100,7 +139,12 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
     if not np.all(np.isfinite(x)):
         raise ValueError("the sequence contains NaN or inf")
     x, scale = _normalise(x) if normalise else (x - x.mean(1, keepdims=True), 1.0)
-    test = frame_blocks_split(len(x), test_fraction, n_blocks, seed)
+    if clip is None:
+        test = frame_blocks_split(len(x), test_fraction, n_blocks, seed)
+    else:
+        if np.shape(clip) != (len(x),):
+            raise ValueError(f"clip has shape {np.shape(clip)}, expected ({len(x)},)")
+        test = clip_split(clip, test_fraction, n_blocks, seed, hold_out)
     rng = np.random.default_rng(seed + 1)
     common = dict(views_per_frame=views_per_frame, cameras=cameras, max_elevation=max_elevation,
                   occlusion=occlusion, noise=noise, min_visible=min(min_visible, x.shape[1]),
@@ -237,6 +281,9 @@ def main(argv=None) -> None:
         p.add_argument("--occlusion", type=float, default=0.0)
         p.add_argument("--noise", type=float, default=0.0)
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--hold_out", choices=("blocks", "clips"), default="blocks",
+                       help="with a 'clip' array in the .npz: test blocks inside every clip, "
+                            "or whole clips")
     p = sub.add_parser("coco")
     p.add_argument("path")
     p.add_argument("--out", required=True)
@@ -255,11 +302,12 @@ def main(argv=None) -> None:
             x, _ = bvh_positions(f.read())
     else:
         x = load_sequence(args.path)
+    clip = load_clips(args.path) if args.kind == "sequence" else None
     train, test = views_from_sequence(
         x, views_per_frame=args.views_per_frame, cameras=args.cameras,
         max_elevation=args.max_elevation, test_fraction=args.test_fraction,
         n_blocks=args.n_blocks, occlusion=args.occlusion, noise=args.noise, seed=args.seed,
-        name=name)
+        name=name, clip=clip, hold_out=args.hold_out)
     _write_pair(train, test, args.out_dir, name)
 
 

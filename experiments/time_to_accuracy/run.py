@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import importers, load_splits  # noqa: E402
-from c3dpo_jax.state import create_train_state, make_schedule  # noqa: E402
+from c3dpo_jax.state import create_train_state  # noqa: E402
 from configs import default, release  # noqa: E402
 from configs import humans as humans_config  # noqa: E402
 
@@ -152,11 +152,11 @@ def run() -> dict:
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
     c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
-    model_cfg, optim_cfg, steps_per_epoch, _, tx = train._setup(c)
-    state = create_train_state(jax.random.key(FLAGS.seed), model_cfg, tx)
+    spec = train.RunSpec.from_config(c)
+    model_cfg = spec.model
+    state = create_train_state(jax.random.key(FLAGS.seed), model_cfg, spec.optimizer())
     train_key = jax.random.fold_in(jax.random.key(FLAGS.seed), 1)
-    train_step = train.make_train_step(model_cfg, train.LossConfig(**c.loss), tx,
-                                       make_schedule(optim_cfg, steps_per_epoch))
+    train_step = spec.train_step()
     chunk = jax.jit(train.make_train_chunk(train_step, c.train.batch_size),
                     static_argnames="n_steps", donate_argnums=0)
     eval_fn = jax.jit(train.make_eval_fn(model_cfg))
