@@ -1,23 +1,122 @@
-"""Trivial baselines: exact on rigid data, Procrustes mean undoes rotations."""
+"""Trivial baselines: exact on rigid data, optimal rigid fits, Procrustes mean undoes
+rotations."""
 
 import numpy as np
+from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from c3dpo_jax import baselines, evaluation
 from c3dpo_jax.data import KeypointData
 
 
+def _residual(camera, kp, vis):
+    """Per view, the mean squared 2D distance of the visible points to the camera's projection
+    (written out here, independently of ``baselines.project``/``reprojection_residual``)."""
+    scale, rows, centred, kp_mean = camera
+    out = []
+    for m in range(len(kp)):
+        on = vis[m] > 0
+        xy = scale[m] * centred[m, on] @ rows[m].T + kp_mean[m]
+        out.append(((xy - kp[m, on]) ** 2).sum(1).mean() if on.any() else 0.0)
+    return np.array(out)
+
+
+def _deformed_views(n_views, n_points=12, seed=0):
+    """A shape, and views of it deformed per view (anisotropic, non-rigid), occluded."""
+    rng = np.random.default_rng(seed)
+    shape = rng.normal(size=(n_points, 3)) * [1.0, 0.6, 0.3]
+    deformed = shape + rng.normal(size=(n_views, n_points, 3)) * [0.05, 0.1, 0.4]
+    rots = Rotation.random(n_views, random_state=seed + 1).as_matrix()
+    kp = 1.5 * np.einsum("mij,mnj->mni", rots[:, :2], deformed) + rng.normal(size=(n_views, 1, 2))
+    vis = (rng.uniform(size=(n_views, n_points)) > 0.2).astype(float)
+    vis[:, :4] = 1
+    return shape, kp, vis
+
+
 def test_fitted_mean_shape_is_exact_on_rigid_orthographic_views():
     rng = np.random.default_rng(0)
     shape = rng.normal(size=(12, 3)) * [1.0, 0.6, 0.3]
-    rots = Rotation.random(50, random_state=1).as_matrix()
-    gt = np.einsum("mij,nj->mni", rots, shape) * 2.0 + [3.0, -1.0, 0.0]  # scaled, shifted
+    flip = np.ones((50, 3))
+    flip[::3, 2] = -1  # every third view sees the mirror image of the shape (z negated)
+    cams = Rotation.random(50, random_state=1).as_matrix() * flip[:, None]
+    scale = rng.uniform(0.5, 3.0, 50)
+    gt = scale[:, None, None] * np.einsum("mij,nj->mni", cams, shape) + rng.normal(size=(50, 1, 3))
     vis = (rng.uniform(size=(50, 12)) > 0.2).astype(float)
     vis[:, :4] = 1
-    mean = baselines.procrustes_mean_shape(gt)
+    mean = baselines.procrustes_mean_shape(gt[1::3])  # only views of the shape, not its mirror
     pred = baselines.fit_mean_shape(mean, gt[..., :2], vis)
     data = KeypointData(kp=gt[..., :2], vis=vis, kp3d=gt)
     assert evaluation.evaluate(pred, data)["mpjpe"] < 1e-6
+    # The true camera itself, from the one-shot start and from random ones, to rounding (the
+    # one-shot camera alone is only good to ~1e-8 here).
+    for start in (None, Rotation.random(50, random_state=2).as_matrix()[:, 2]):
+        got_scale, got_rows, _, _ = baselines.fit_camera(shape, gt[..., :2], vis, start_axis=start)
+        np.testing.assert_allclose(got_scale, scale, rtol=1e-12)
+        np.testing.assert_allclose(got_rows, cams[:, :2], atol=1e-12)
+
+
+def test_best_rigid_fit_is_never_worse_and_clearly_better_than_the_one_shot_fit():
+    shape, kp, vis = _deformed_views(200)
+    one_shot = _residual(baselines.fit_camera(shape, kp, vis, n_iters=0), kp, vis)
+    camera = baselines.fit_camera(shape, kp, vis)
+    refined = _residual(camera, kp, vis)
+    assert np.all(refined <= one_shot * (1 + 1e-12))
+    assert refined.mean() < 0.8 * one_shot.mean()
+    np.testing.assert_allclose(baselines.reprojection_residual(baselines.project(*camera), kp, vis),
+                               refined, rtol=1e-12)
+    rows = camera[1]
+    np.testing.assert_allclose(np.einsum("mij,mkj->mik", rows, rows), np.broadcast_to(
+        np.eye(2), rows.shape[:1] + (2, 2)), atol=1e-12)
+    # fit_mean_shape: observed x, y where visible, else the camera's; depth along the axis.
+    pred = baselines.fit_mean_shape(shape, kp, vis, chunk=7)
+    scale, _, centred, kp_mean = camera
+    xy = scale[:, None, None] * np.einsum("mij,mnj->mni", rows, centred) + kp_mean[:, None]
+    np.testing.assert_allclose(pred[..., :2], np.where(vis[..., None] > 0, kp, xy), atol=1e-12)
+    depth = scale[:, None] * np.einsum("mnj,mj->mn", centred, np.cross(rows[:, 0], rows[:, 1]))
+    np.testing.assert_allclose(pred[..., 2], depth, atol=1e-12)
+
+
+def test_best_rigid_fit_matches_a_brute_force_optimiser_from_any_start():
+    shape, kp, vis = _deformed_views(5, seed=3)
+    brute = []
+    for m in range(len(kp)):
+        on = vis[m] > 0
+
+        def error(p, m=m, on=on):  # axis-angle rotation, scale, translation
+            xy = p[3] * shape[on] @ Rotation.from_rotvec(p[:3]).as_matrix()[:2].T + p[4:]
+            return ((xy - kp[m, on]) ** 2).sum(1).mean()
+
+        brute.append(min(
+            minimize(error, np.r_[r, 1.0, kp[m, on].mean(0)], method="BFGS",
+                     options={"gtol": 1e-12}).fun
+            for r in Rotation.random(20, random_state=m).as_rotvec()))
+    one_shot = _residual(baselines.fit_camera(shape, kp, vis, n_iters=0), kp, vis)
+    assert np.all(one_shot > np.array(brute) * 1.01)  # the one-shot fit is not optimal here
+    for start in (None, Rotation.random(len(kp), random_state=9).as_matrix()[:, 2]):
+        got = _residual(baselines.fit_camera(shape, kp, vis, start_axis=start), kp, vis)
+        np.testing.assert_allclose(got, brute, rtol=1e-6)
+
+
+def test_degenerate_views_give_finite_fits():
+    rng = np.random.default_rng(5)
+    shape = rng.normal(size=(6, 3))
+    kp = rng.normal(size=(6, 6, 2))
+    vis = np.zeros((6, 6))
+    for m, n in enumerate([0, 1, 2, 3, 6, 6]):
+        vis[m, :n] = 1  # 0, 1, 2 visible points, then enough
+    shapes = np.broadcast_to(shape, (6, 6, 3)).copy()
+    shapes[4] = shape[0]  # all points coincide
+    shapes[5] = np.outer(np.arange(6.0), [1.0, 2.0, 0.5])  # all on a line
+    for n_iters in (0, 20):
+        pred = baselines.fit_mean_shape(shapes, kp, vis, n_iters=n_iters)
+        assert np.all(np.isfinite(pred))
+        np.testing.assert_array_equal(pred[..., :2][vis > 0], kp[vis > 0])
+    camera = baselines.fit_camera(shapes, kp, vis)
+    assert all(np.all(np.isfinite(x)) for x in camera)
+    one_shot = _residual(baselines.fit_camera(shapes, kp, vis, n_iters=0), kp, vis)
+    got = _residual(camera, kp, vis)
+    assert np.all(got <= one_shot + 1e-12)
+    assert got[2] < 1e-20  # two points: fitted exactly
 
 
 def test_procrustes_mean_recovers_the_shape_up_to_rotation():
