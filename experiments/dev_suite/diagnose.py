@@ -1,0 +1,138 @@
+"""Where does the 3D error come from, and how does it evolve while training?
+
+Trains one suite dataset with the library's loop (``train.train_and_evaluate``) and, at
+every evaluation (``train.Hooks.after_evaluation``), measures on the training views (a fixed
+subset) and on the test views::
+
+  python experiments/dev_suite/diagnose.py --dataset=deepmimic --out=/tmp/diag
+  python experiments/dev_suite/diagnose.py --dataset=deepmimic --set=loss.w_canonicalization=10
+
+Written to ``OUT/diagnostics.jsonl``, one record per evaluation and split:
+
+- ``mpjpe`` (best of the prediction and its depth flip, per view), ``mpjpe_orig``;
+  ``sign_agreement``: the fraction of views whose better one is the unflipped prediction
+  (near 0 or 1: one depth sign for all views; 0.5: the sign is a coin toss per view);
+- ``reprojection``: mean 2D distance of the visible points to their reprojection;
+- ``canon_view_spread``: views of the same frame (the importer's consecutive
+  ``views_per_frame`` views) must give the same canonical shape; the RMS distance of each
+  view's canonical shape to its frame's mean, over the RMS size of the shapes (computed
+  from 2D data and the frame labels alone);
+- ``canon_oracle``: the canonical shapes under the best rotation onto the 3D ground truth
+  (shape or mirror image, per view): the error of the shape itself, with a perfect camera;
+- ``canon_rotation_share``: the part of the canonical shapes' variance across views that a
+  rotation of each onto their mean removes (high: the basis encodes rotations);
+- ``alpha_rms``: RMS of the shape coefficients times the basis norm (the size of the
+  deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
+"""
+
+import json
+import os
+import sys
+
+import jax
+import numpy as np
+from absl import app, flags
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
+
+import suite  # noqa: E402
+
+from c3dpo_jax import baselines, evaluation, train  # noqa: E402
+from c3dpo_jax.data import json_dataset  # noqa: E402
+from configs import own_json  # noqa: E402
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("dataset", "deepmimic", "a dataset of the suite")
+flags.DEFINE_integer("seed", 0, "training seed")
+flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE")
+flags.DEFINE_string("diag_out", "/tmp/c3dpo_diag", "workdir of the run")
+flags.DEFINE_integer("n_train_views", 3000, "training views measured")
+
+
+def _rms(x):
+    return float(np.sqrt(np.mean(np.sum(x**2, -1))))
+
+
+def _oracle(shapes: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Per-view error of ``shapes`` under the best proper rotation onto ``gt``, the better
+    of the shape and its mirror image (both centred)."""
+    gt = gt - gt.mean(1, keepdims=True)
+    errs = []
+    for sign in (1.0, -1.0):
+        s = shapes * np.array([1.0, 1.0, sign])
+        s = s - s.mean(1, keepdims=True)
+        rot = baselines._kabsch(s, gt)
+        errs.append(np.linalg.norm(np.einsum("mij,mnj->mni", rot, s) - gt, axis=-1).mean(1))
+    return np.minimum(*errs)
+
+
+def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: float) -> dict:
+    res = evaluation.evaluate(pred["shape_image_coord"], data, protocol)
+    mask = data.vis
+    per = evaluation.mpjpe(evaluation.center_depth(pred["shape_image_coord"], mask),
+                           evaluation.center_depth(data.kp3d, mask), mask)
+    canon = pred["shape_canonical"] / rescale  # in the data's units
+    canon = canon - canon.mean(1, keepdims=True)
+    out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
+               sign_agreement=float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
+               reprojection=evaluation.reprojection_error(pred["kp_reprojected"], data),
+               canon_oracle=float(_oracle(canon, data.kp3d).mean()),
+               mean_canon_size=_rms(canon), alpha_rms=float(np.sqrt(np.mean(pred["alpha"]**2))))
+    m = len(canon) // views_per_frame * views_per_frame
+    if views_per_frame > 1 and m:
+        frames = canon[:m].reshape(-1, views_per_frame, *canon.shape[1:])
+        out["canon_view_spread"] = _rms(frames - frames.mean(1, keepdims=True)) / _rms(canon)
+    mean = baselines.procrustes_mean_shape(canon, max_samples=len(canon))
+    rot = baselines._kabsch(canon, mean)
+    aligned = np.einsum("mij,mnj->mni", rot, canon)
+    before, after = np.mean((canon - mean) ** 2), np.mean((aligned - mean) ** 2)
+    out["canon_rotation_share"] = float(1 - after / max(before, 1e-12))
+    return out
+
+
+def main(argv):
+    del argv
+    info = suite.make_data(FLAGS.dataset, FLAGS.data_root, FLAGS.out)
+    c = own_json.get_config()
+    c.data.train_path, c.data.test_path = info["train"], info["test"]
+    c.data.protocol, c.model.n_keypoints = info["protocol"], info["n_keypoints"]
+    c.seed = FLAGS.seed
+    c.train.progress_bar = False
+    c.train.eval_every_steps = FLAGS.eval_every_steps
+    for item in FLAGS.set:
+        key, value = item.split("=", 1)
+        *parents, leaf = key.split(".")
+        node = c
+        for p in parents:
+            node = node[p]
+        node[leaf] = type(node[leaf])(json.loads(value)) if not isinstance(
+            node[leaf], str) else value
+    train_data = json_dataset.load(info["train"])
+    test_data = json_dataset.load(info["test"])
+    vpf = 30 if FLAGS.dataset == "humans" else (10 if FLAGS.dataset in suite.NRSFM else 3)
+    n = min(FLAGS.n_train_views, len(train_data)) // vpf * vpf
+    start = np.random.default_rng(0).integers(0, (len(train_data) - n) // vpf + 1) * vpf
+    train_sub = train_data.subset(np.arange(start, start + n))  # whole frames, in order
+    c = train.resolve_input_scale(c, train_data)
+    spec = train.RunSpec.from_config(c)
+    os.makedirs(FLAGS.diag_out, exist_ok=True)
+    path = os.path.join(FLAGS.diag_out, "diagnostics.jsonl")
+
+    def after_evaluation(record, state):
+        variables = jax.device_get(state.variables)
+        for split, data in (("train", train_sub), ("test", test_data)):
+            pred = train.predict(variables, data, spec.model)
+            row = dict(step=record["step"], split=split,
+                       **measure(pred, data, vpf, info["protocol"],
+                                    spec.model.keypoint_rescale))
+            with open(path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}"
+                           for k, v in row.items()), flush=True)
+
+    train.train_and_evaluate(c, FLAGS.diag_out, train.Hooks(after_evaluation=after_evaluation))
+
+
+if __name__ == "__main__":
+    app.run(main)

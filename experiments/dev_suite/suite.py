@@ -1,0 +1,275 @@
+"""The development suite: every dataset, several seeds, one table.
+
+Each run is the command a user types (``python -m c3dpo_jax.main --config=configs/own_json.py``
+on JSON files made by the library's importer), so the numbers are what the CLI gives::
+
+  python experiments/dev_suite/suite.py                       # default recipe, 3 seeds, all data
+  python experiments/dev_suite/suite.py --variant=canon10:loss.w_canonicalization=10
+  python experiments/dev_suite/suite.py --datasets=deepmimic,cmu131 --seeds=0 --report_only
+
+Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
+
+- ``drink face jaws pickup stretch yoga``: ``nrsfm/NAME.npz``, 10 upright cameras per frame,
+  test frames in 2 of 10 blocks of the sequence (the importer's defaults);
+- ``deepmimic``: ``mocap/deepmimic.npz`` (15 clips, 18 joints) and ``cmu131``:
+  ``mocap/cmu131.npz`` (3 clips, 17 joints): 3 upright cameras per frame, test frames in 1 of
+  5 blocks of every clip (unseen stretches of each motion);
+- ``deepmimic_clips`` (not in the default list): the same views with 3 of the 15 clips held
+  out whole (unseen motions);
+- ``humans``: the built-in synthetic humans (configs/humans.py's data, protocol ``up3d``).
+
+A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
+``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
+``OUT/runs/VARIANT/DATASET__sSEED`` (a finished run is not run again; an unfinished one
+resumes), ``--jobs`` of them at a time, each pinned to one core. The table (markdown, also
+written to ``OUT/VARIANT.md``) gives per dataset the mean (and spread) over seeds of: the rigid
+baseline (the training mean shape, best rigid fit to each view) and zero depth; C3DPO after
+2, 5 and 10 minutes of training (each run's own clock: one core, other runs on the other) and
+at the end; the best point of the evaluation curve; the worst seed's final / best ratio (1.0:
+no degradation) and the worst seed's baseline / final ratio (> 1: better than the baseline).
+"""
+
+import glob
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+from absl import app, flags
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
+sys.path.insert(0, ROOT)
+
+NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
+# How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
+# or whole "clips" (unseen motions; not in the default list).
+MOCAP = {"deepmimic": "blocks", "cmu131": "blocks", "deepmimic_clips": "clips"}
+DATASETS = NRSFM + ("deepmimic", "cmu131", "humans")
+BASELINE = "fitted mean shape"
+ONE_SHOT = "fitted mean shape, one-shot camera"
+MINUTES = (2, 5, 10)
+
+FLAGS = flags.FLAGS
+flags.DEFINE_list("datasets", list(DATASETS), "datasets of the suite to run")
+flags.DEFINE_list("seeds", ["0", "1", "2"], "training seeds")
+flags.DEFINE_multi_string("variant", [], "NAME:KEY=VALUE,... (config overrides); 'default' "
+                          "(no overrides) runs when no variant is given")
+flags.DEFINE_string("config", "configs/own_json.py", "the config every run starts from")
+flags.DEFINE_string("data_root", os.path.join(ROOT, "..", "shared", "data"),
+                    "directory with nrsfm/ and mocap/")
+flags.DEFINE_string("out", os.path.join(HERE, "results"), "where data, runs and tables go")
+flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
+flags.DEFINE_integer("eval_every_steps", 1000, "test evaluations along the curve")
+flags.DEFINE_bool("report_only", False, "only print the tables of the runs already made")
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``"name:a.b=1,c.d=x"`` -> ``("name", ["a.b=1", "c.d=x"])``."""
+    name, _, rest = text.partition(":")
+    overrides = [item for item in rest.split(",") if item]
+    for item in overrides:
+        if "=" not in item:
+            raise app.UsageError(f"variant {name!r}: {item!r} is not KEY=VALUE")
+    return name, overrides
+
+
+def make_data(name: str, data_root: str, out: str) -> dict:
+    """Writes the dataset's train/test JSON once; returns paths, K and protocol."""
+    from c3dpo_jax.data import importers, json_dataset, load_splits
+    from configs import humans as humans_config
+
+    paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
+    info_path = os.path.join(out, "data", f"{name}.json")
+    if not os.path.exists(info_path):
+        if name == "humans":
+            train, test = load_splits(humans_config.get_config().data)
+            protocol = "up3d"
+        else:
+            folder = "nrsfm" if name in NRSFM else "mocap"
+            path = os.path.join(data_root, folder, f"{name.removesuffix('_clips')}.npz")
+            if not os.path.exists(path):
+                raise app.UsageError(f"{path} not found (--data_root)")
+            x = importers.load_sequence(path)
+            kw = {} if name in NRSFM else dict(
+                views_per_frame=3, clip=importers.load_clips(path), hold_out=MOCAP[name],
+                n_blocks=5)
+            train, test = importers.views_from_sequence(x, seed=0, name=name, **kw)
+            protocol = "default"
+        os.makedirs(os.path.dirname(info_path), exist_ok=True)
+        for split, data in (("train", train), ("test", test)):
+            json_dataset.save(data, paths[split])
+        info = dict(n_keypoints=train.n_keypoints, protocol=protocol, n_train=len(train),
+                    n_test=len(test))
+        with open(info_path, "w") as f:
+            json.dump(info, f)
+    with open(info_path) as f:
+        return dict(json.load(f), **paths)
+
+
+def run_dir(out: str, variant: str, dataset: str, seed) -> str:
+    return os.path.join(out, "runs", variant, f"{dataset}__s{seed}")
+
+
+def is_finished(workdir: str) -> bool:
+    path = os.path.join(workdir, "eval_results.json")
+    if not os.path.exists(path):
+        return False
+    with open(path) as f:
+        return "final" in json.load(f)
+
+
+def command(data: dict, overrides: list[str], seed, workdir: str) -> list[str]:
+    """The CLI call of one run."""
+    args = [sys.executable, "-m", "c3dpo_jax.main", f"--config={FLAGS.config}",
+            f"--workdir={workdir}", "--nofigures",
+            f"--config.data.train_path={data['train']}",
+            f"--config.data.test_path={data['test']}",
+            f"--config.data.protocol={data['protocol']}",
+            f"--config.model.n_keypoints={data['n_keypoints']}",
+            f"--config.seed={seed}", "--config.train.progress_bar=False",
+            f"--config.train.eval_every_steps={FLAGS.eval_every_steps}"]
+    return args + [f"--config.{item}" for item in overrides]
+
+
+def run_all(jobs: list[tuple[str, list[str]]]) -> None:
+    """Runs ``(workdir, command)`` pairs, ``FLAGS.jobs`` at a time, one core each."""
+    cores = sorted(os.sched_getaffinity(0))
+    running: dict[int, tuple[subprocess.Popen, str, float]] = {}
+    pending = list(jobs)
+    while pending or running:
+        for core in cores[: FLAGS.jobs]:
+            if core in running or not pending:
+                continue
+            workdir, cmd = pending.pop(0)
+            os.makedirs(workdir, exist_ok=True)
+            log = open(os.path.join(workdir, "log.txt"), "a")
+            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                    preexec_fn=lambda c=core: os.sched_setaffinity(0, {c}))
+            running[core] = (proc, workdir, time.time())
+            print(f"[core {core}] {os.path.relpath(workdir, FLAGS.out)}", flush=True)
+        time.sleep(2)
+        for core, (proc, workdir, start) in list(running.items()):
+            if proc.poll() is not None:
+                del running[core]
+                status = "done" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
+                print(f"[core {core}] {os.path.relpath(workdir, FLAGS.out)}: {status} in "
+                      f"{time.time() - start:.0f} s", flush=True)
+
+
+def at_minutes(history: list[dict], final: dict, minutes: float) -> float:
+    """Test MPJPE of the last evaluation made within ``minutes`` of training (the final one
+    when the run ended sooner); NaN when none was."""
+    if final.get("train_s", np.inf) <= minutes * 60:
+        return final["mpjpe"]
+    made = [h["mpjpe"] for h in history if h.get("train_s", np.inf) <= minutes * 60]
+    return made[-1] if made else float("nan")
+
+
+def baseline_scores(name: str, out: str) -> dict[str, float]:
+    """Test MPJPE of the baselines of ``train.baseline_results`` (the best rigid fit of the
+    training mean shape, zero depth) on a suite dataset, cached with the hash of the
+    baselines' source so that a change of ``c3dpo_jax.baselines`` recomputes them."""
+    import hashlib
+    import inspect
+
+    from c3dpo_jax import baselines, evaluation, train
+    from c3dpo_jax.data import json_dataset
+
+    digest = hashlib.sha1(inspect.getsource(baselines).encode()).hexdigest()[:12]
+    path = os.path.join(out, "data", f"{name}_baselines.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            cached = json.load(f)
+        if cached.get("source") == digest:
+            return cached["mpjpe"]
+    data = make_data(name, FLAGS.data_root, out)
+    train_data, test = json_dataset.load(data["train"]), json_dataset.load(data["test"])
+    res = train.baseline_results(train_data, test, data["protocol"])
+    scores = {k: v["mpjpe"] for k, v in res.items()}
+    one_shot = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train_data.kp3d),
+                                        test.kp, test.vis, n_iters=0)
+    scores[ONE_SHOT] = evaluation.evaluate(one_shot, test, data["protocol"])["mpjpe"]
+    with open(path, "w") as f:
+        json.dump({"source": digest, "mpjpe": scores}, f)
+    return scores
+
+
+def summarise(workdir: str, base: dict[str, float]) -> dict:
+    with open(os.path.join(workdir, "eval_results.json")) as f:
+        res = json.load(f)
+    curve = [h["mpjpe"] for h in res["history"]] + [res["final"]["mpjpe"]]
+    final = res["final"]["mpjpe"]
+    row = {f"{m} min": at_minutes(res["history"], res["final"], m) for m in MINUTES}
+    row.update(end=final, best=min(curve), final_over_best=final / min(curve),
+               steps=res["final"]["step"], train_s=res["final"].get("train_s", float("nan")),
+               baseline=base[BASELINE], one_shot=base[ONE_SHOT],
+               zero_depth=base["zero depth"])
+    # The bar is the better of the two rigid fits (the best 2D fit is not always the best 3D).
+    row["baseline_over_final"] = min(row["baseline"], row["one_shot"]) / final
+    return row
+
+
+def _fmt(values: list[float]) -> str:
+    values = [v for v in values if np.isfinite(v)]
+    if not values:
+        return "-"
+    mean = float(np.mean(values))
+    digits = 4 if mean < 0.1 else 3
+    if len(values) == 1:
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} ± {float(np.std(values)):.{digits}f}"
+
+
+def table(out: str, variant: str, datasets, seeds) -> str:
+    head = ["dataset", "seeds", "rigid baseline", "one-shot rigid fit", "zero depth",
+            *(f"{m} min" for m in MINUTES),
+            "end", "best on curve", "final / best (worst seed)",
+            "better rigid fit / final (worst seed)", "steps, train min"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for d in datasets:
+        done = [w for s in seeds if is_finished(w := run_dir(out, variant, d, s))]
+        if not done:
+            continue
+        base = baseline_scores(d, out)
+        rows = [summarise(w, base) for w in done]
+        col = {k: [r[k] for r in rows] for k in rows[0]}
+        cells = [d, str(len(rows)), _fmt(col["baseline"][:1]), _fmt(col["one_shot"][:1]),
+                 _fmt(col["zero_depth"][:1]),
+                 *(_fmt(col[f"{m} min"]) for m in MINUTES), _fmt(col["end"]), _fmt(col["best"]),
+                 f"{max(col['final_over_best']):.2f}", f"{min(col['baseline_over_final']):.2f}x",
+                 f"{int(np.mean(col['steps']))}, {np.mean(col['train_s']) / 60:.1f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv):
+    del argv
+    variants = [parse_variant(v) for v in FLAGS.variant] or [("default", [])]
+    os.makedirs(FLAGS.out, exist_ok=True)
+    if not FLAGS.report_only:
+        data = {d: make_data(d, FLAGS.data_root, FLAGS.out) for d in FLAGS.datasets}
+        jobs = []
+        for name, overrides in variants:
+            for seed in FLAGS.seeds:
+                for d in FLAGS.datasets:
+                    workdir = run_dir(FLAGS.out, name, d, seed)
+                    if not is_finished(workdir):
+                        jobs.append((workdir, command(data[d], overrides, seed, workdir)))
+        run_all(jobs)
+    for name, overrides in variants:
+        text = table(FLAGS.out, name, FLAGS.datasets, FLAGS.seeds)
+        header = f"### {name}" + (f" ({', '.join(overrides)})" if overrides else "")
+        with open(os.path.join(FLAGS.out, f"{name}.md"), "w") as f:
+            f.write(header + "\n\n" + text + "\n")
+        print(f"\n{header}\n\n{text}")
+    missing = [w for w in glob.glob(os.path.join(FLAGS.out, "runs", "*", "*"))
+               if not is_finished(w)]
+    if missing:
+        print(f"\nunfinished runs (see their log.txt): {len(missing)}")
+
+
+if __name__ == "__main__":
+    app.run(main)

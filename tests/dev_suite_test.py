@@ -1,0 +1,53 @@
+"""experiments/dev_suite: the suite runs the CLI on importer-made files and tabulates it."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SUITE = os.path.join(ROOT, "experiments", "dev_suite", "suite.py")
+
+
+def _mocap(path: str, n_clips: int = 3, frames: int = 20) -> None:
+    """A small 'mocap' file as in shared/data/mocap: X (F, 3, K), clip ids, names."""
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(3, 9))
+    t = np.linspace(0, 6 * np.pi, n_clips * frames)
+    x = base[None] + np.sin(t)[:, None, None] * rng.normal(size=(1, 3, 9)) * 0.3
+    np.savez(path, X=x.astype(np.float32), clip=np.repeat(np.arange(n_clips), frames),
+             frame=np.tile(np.arange(frames), n_clips), clip_names=np.array(["a", "b", "c"]),
+             kp_names=np.array([f"j{i}" for i in range(9)]))
+
+
+def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke_subprocess_env):
+    (tmp_path / "data" / "mocap").mkdir(parents=True)
+    _mocap(str(tmp_path / "data" / "mocap" / "cmu131.npz"))
+    out = tmp_path / "out"
+    cmd = [sys.executable, SUITE, "--datasets=cmu131", "--seeds=0", "--jobs=1",
+           "--config=configs/own_json.py:smoke", f"--data_root={tmp_path / 'data'}",
+           f"--out={out}", "--eval_every_steps=10", "--variant=lr:optim.lr=0.001"]
+    proc = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path),
+                          env=smoke_subprocess_env())
+    workdir = out / "runs" / "lr" / "cmu131__s0"
+    with open(workdir / "config.json") as f:
+        config = json.load(f)
+    assert config["optim"]["lr"] == 0.001 and config["model"]["n_keypoints"] == 9
+    with open(workdir / "eval_results.json") as f:
+        res = json.load(f)
+    assert [h["step"] for h in res["history"]] == [10] and res["final"]["step"] == 20
+    # 3 views per frame of 60 frames; a fifth of every clip is test.
+    with open(out / "data" / "cmu131.json") as f:
+        info = json.load(f)
+    assert (info["n_train"], info["n_test"]) == (48 * 3, 12 * 3)
+    row = next(line for line in proc.stdout.splitlines() if line.startswith("| cmu131"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert len(cells) == 13 and cells[1] == "1"
+    assert all(c != "-" and "nan" not in c for c in cells)
+    assert (out / "lr.md").read_text().count("| cmu131 |") == 1
+    # A finished run is not run again.
+    again = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path),
+                           env=smoke_subprocess_env())
+    assert "[core" not in again.stdout
