@@ -1,20 +1,24 @@
-"""Command line: ``python -m c3dpo_jax.main --config=configs/up3d.py --workdir=DIR``.
+"""Command line: ``c3dpo-train --config=configs/up3d.py --workdir=DIR`` (or ``python -m
+c3dpo_jax.main ...``).
 
 Trains (resuming from DIR when it holds checkpoints) and evaluates, or with
 ``--mode=eval`` scores the latest checkpoint in DIR. Any config field can be set with
 ``--config.section.field=value``; ``--nofigures`` skips the pictures written after training.
+``configs/NAME.py`` is the package's bundled config when the working directory has no such
+file. Errors in the input print as one line ``error: ...`` (exit status 2); ``--verbose``
+logs the resolved config and the loop's periodic metrics, and keeps tracebacks.
 """
 
-import logging as py_logging
 import sys
 
-from absl import app, flags, logging
+from absl import flags, logging
 from ml_collections import config_flags
 
-from c3dpo_jax import evaluation, train
+from c3dpo_jax import cli, evaluation, train
 
 _CONFIG = config_flags.DEFINE_config_file(
-    "config", None, "Config file (FILE[:ARGS]).", lock_config=True
+    "config", None, "Config file FILE[:ARGS], e.g. configs/synthetic.py:smoke (configs/NAME.py: "
+    "the bundled config when the working directory has no such file).", lock_config=True
 )
 _WORKDIR = flags.DEFINE_string("workdir", None, "Directory for checkpoints, metrics and results.")
 _MODE = flags.DEFINE_enum(
@@ -23,14 +27,26 @@ _MODE = flags.DEFINE_enum(
 _FIGURES = flags.DEFINE_bool(
     "figures", True, "After training, write pictures into WORKDIR/figures (--nofigures: skip)."
 )
+_VERBOSE = flags.DEFINE_bool(
+    "verbose", False, "Log the resolved config and the training loop's periodic metrics; "
+    "show the traceback of input errors.")
 flags.mark_flags_as_required(["config", "workdir"])
 
 
-class _QuietLibraries(py_logging.Filter):
-    """Drops the INFO chatter of orbax (dozens of lines per checkpoint)."""
-
-    def filter(self, record):
-        return record.levelno >= py_logging.WARNING or "/orbax/" not in record.pathname
+def _header(config) -> str:
+    """What runs, in two or three lines (the whole resolved config is in WORKDIR/config.json)."""
+    flag = flags.FLAGS[_CONFIG.name]
+    d = config.data
+    data = f"{d.train_path} / {d.test_path}" if d.train_path else d.name
+    lines = [f"c3dpo_jax {_MODE.value}: {config_flags.get_config_filename(flag)} -> "
+             f"{_WORKDIR.value}", f"  data: {data}, {config.model.n_keypoints} keypoints"]
+    if _MODE.value == "train":
+        spec = train.RunSpec.from_config(config)
+        lines[-1] += f"; {spec.total_steps} steps of batch {spec.batch_size}"
+    overrides = config_flags.get_override_values(flag)
+    if overrides:
+        lines.append("  overrides: " + ", ".join(f"{k}={v}" for k, v in overrides.items()))
+    return "\n".join(lines)
 
 
 def _write_figures(config, workdir):
@@ -46,9 +62,14 @@ def _write_figures(config, workdir):
 
 def main(argv):
     del argv
-    logging.get_absl_handler().addFilter(_QuietLibraries())
     config = _CONFIG.value
-    logging.info("config:\n%s", config)
+    verbose = cli.is_verbose(_VERBOSE)
+    # The bar shows the losses; the loop's "step N: {...}" lines (periodic metrics, test
+    # scores: in metrics.jsonl and eval_results.json) would only repeat them at 16 digits.
+    cli.setup_logging(hidden=() if verbose or not config.train.progress_bar else ("step %d:",))
+    print(_header(config), flush=True)
+    if verbose:
+        logging.info("config:\n%s", config)
     if _MODE.value == "train":
         results = train.train_and_evaluate(config, _WORKDIR.value)
         if _FIGURES.value:
@@ -63,5 +84,10 @@ def main(argv):
     sys.stdout.flush()
 
 
+def cli_main():
+    """The ``c3dpo-train`` console script."""
+    cli.run(main, _VERBOSE)
+
+
 if __name__ == "__main__":
-    app.run(main)
+    cli_main()

@@ -1,7 +1,9 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
-  python -m c3dpo_jax.predict --workdir=runs/synthetic --input=poses.json \\
-      --output=out.npz [--figures=DIR]
+  c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
+
+(or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
+``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
 
 Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
 ``kp_vis``, or ``{"dataset", "data"}``), or COCO-style keypoint annotations
@@ -16,9 +18,12 @@ import json
 import os
 
 import numpy as np
-from absl import app, flags, logging
+from absl import flags, logging
 
+from c3dpo_jax import cli
 from c3dpo_jax.reconstruct import Reconstruction, load, reconstruct
+
+_SUFFIXES = (".json", ".npz")
 
 
 def _define_flags() -> dict:
@@ -30,6 +35,7 @@ def _define_flags() -> dict:
         "figures": flags.DEFINE_string("figures", None, "Optional directory for a few pictures."),
         "n_figures": flags.DEFINE_integer("n_figures", 3, "Samples to draw with --figures."),
         "skeleton": flags.DEFINE_string("skeleton", None, "Skeleton for the pictures (e.g. h36m)."),
+        "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 
 
@@ -62,8 +68,11 @@ def read_coco(obj: dict) -> dict[str, np.ndarray]:
 
 def read_input(path: str) -> dict[str, np.ndarray]:
     """Either input format -> ``kp``, ``vis``, ``index`` (+ ``class_mask``, ``K``, ``kp3d``)."""
-    with open(path) as f:
-        obj = json.load(f)
+    try:
+        with open(path) as f:
+            obj = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:  # say which file
+        raise ValueError(f"{path} is not a JSON file: {err}") from err
     if isinstance(obj, dict) and "annotations" in obj:
         return read_coco(obj)
     from c3dpo_jax.data import json_dataset
@@ -77,7 +86,16 @@ def read_input(path: str) -> dict[str, np.ndarray]:
     return out
 
 
+def _check_output(path: str) -> None:
+    """The output's suffix picks its format."""
+    if not path.endswith(_SUFFIXES):
+        raise ValueError(f"--output must end in .json or .npz, got {path!r}")
+
+
 def write_output(rec: Reconstruction, index: np.ndarray, path: str) -> None:
+    """Writes ``.npz`` or ``.json`` (module docstring), making the parent directory."""
+    _check_output(path)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     arrays = dict(rec._asdict(), index=index)
     if path.endswith(".npz"):
         np.savez(path, **arrays)
@@ -85,8 +103,6 @@ def write_output(rec: Reconstruction, index: np.ndarray, path: str) -> None:
         rows = [{k: v[i].tolist() for k, v in arrays.items()} for i in range(len(index))]
         with open(path, "w") as f:
             json.dump(rows, f)
-    else:
-        raise ValueError(f"--output must end in .json or .npz, got {path!r}")
 
 
 def _figures(rec, inputs, out_dir: str, n: int, skeleton_name: str | None) -> None:
@@ -105,6 +121,7 @@ def _figures(rec, inputs, out_dir: str, n: int, skeleton_name: str | None) -> No
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
         n_figures: int = 3, skeleton: str | None = None) -> Reconstruction:
     """What the command line does; returns the reconstructions it wrote."""
+    _check_output(output)  # before the work, not after it
     params = load(workdir)
     inputs = read_input(input_path)
     perspective = params.config.projection_type == "perspective"
@@ -117,12 +134,19 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
     return rec
 
 
-if __name__ == "__main__":
-    _FLAGS = _define_flags()
+def cli_main():
+    """The ``c3dpo-predict`` console script."""
+    holders = _define_flags()
+    verbose = holders.pop("verbose")
     flags.mark_flags_as_required(["workdir", "input", "output"])
 
     def _main(argv):
         del argv
-        run(**{name: holder.value for name, holder in _FLAGS.items()})
+        cli.setup_logging()
+        run(**{name: holder.value for name, holder in holders.items()})
 
-    app.run(_main)
+    cli.run(_main, verbose)
+
+
+if __name__ == "__main__":
+    cli_main()

@@ -32,6 +32,11 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     first = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}")
     assert first.returncode == 0, first.stderr[-3000:]
     assert "fitted mean shape" in first.stdout and "C3DPO" in first.stdout
+    # A short header, not the config's YAML; no library chatter, no metric dumps in the bar.
+    assert first.stdout.startswith(f"c3dpo_jax train: configs/synthetic.py:smoke -> {workdir}\n"
+                                   "  data: synthetic, 20 keypoints; 20 steps of batch 32\n")
+    for noise in ("!!python/tuple", "backend 'tpu'", "orbax", "step 5: {", "step 10: test"):
+        assert noise not in first.stdout + first.stderr, noise
     assert "training_curves.png" in os.listdir(os.path.join(workdir, "figures"))
     results = json.loads(_read(workdir, "eval_results.json"))
     assert results["final"]["step"] == 20 and results["final"]["mpjpe"] > 0

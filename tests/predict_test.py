@@ -39,10 +39,13 @@ def test_release_json_in_npz_out_with_figures(setup):
                 "kp_loc_3d": data.kp3d[i].T.tolist()} for i in range(len(data))]
     path = root / "poses.json"
     path.write_text(json.dumps(entries))
-    out, figs = str(root / "out.npz"), str(root / "figs")
+    out, figs = str(root / "new" / "dir" / "out.npz"), str(root / "figs")  # parent made
     proc = _run(f"--workdir={workdir}", f"--input={path}", f"--output={out}", f"--figures={figs}",
                 "--n_figures=2")
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # Only the useful line: no orbax or JAX backend chatter.
+    assert [line.split("] ", 1)[1] for line in proc.stderr.splitlines()] == [
+        f"wrote 5 reconstructions to {out}"]
     got = np.load(out)
     want = reconstruct(params, data.kp, data.vis)
     np.testing.assert_allclose(got["shape_3d"], want.shape_3d, atol=1e-4)
@@ -69,6 +72,18 @@ def test_coco_annotations_in_json_out_skipping_empty_ones(setup):
     assert [r["index"] for r in rows] == [0, 2, 3]
     want = reconstruct(params, data.kp[:3], data.vis[:3])
     np.testing.assert_allclose([r["shape_3d"] for r in rows], want.shape_3d, atol=1e-4)
+
+
+def test_input_errors_are_one_line_before_any_work(setup):
+    root, _, workdir, _ = setup
+    (root / "broken.json").write_text("[{")
+    bad_json = _run(f"--workdir={workdir}", f"--input={root / 'broken.json'}",
+                    f"--output={root / 'o.json'}")
+    assert bad_json.returncode == 2
+    assert bad_json.stderr.startswith(f"error: {root / 'broken.json'} is not a JSON file: ")
+    assert len(bad_json.stderr.splitlines()) == 1
+    with pytest.raises(ValueError, match="must end in .json or .npz"):
+        predict.run("no/such/workdir", "no/such/input.json", str(root / "o.txt"))
 
 
 def test_coco_reader_rejects_malformed_keypoints():

@@ -269,26 +269,47 @@ def main(argv=None) -> None:
                                      description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="kind", required=True)
     for kind in ("sequence", "bvh"):
-        p = sub.add_parser(kind)
-        p.add_argument("path")
-        p.add_argument("--out_dir", required=True)
-        p.add_argument("--name", default=None)
-        p.add_argument("--views_per_frame", type=int, default=10)
-        p.add_argument("--cameras", choices=("upright", "uniform"), default="upright")
-        p.add_argument("--max_elevation", type=float, default=0.5)
-        p.add_argument("--test_fraction", type=float, default=0.2)
-        p.add_argument("--n_blocks", type=int, default=10)
-        p.add_argument("--occlusion", type=float, default=0.0)
-        p.add_argument("--noise", type=float, default=0.0)
-        p.add_argument("--seed", type=int, default=0)
+        p = sub.add_parser(kind, help="views of a 3D point sequence" if kind == "sequence"
+                           else "views of the joints of a BVH motion capture")
+        p.add_argument("path", help=".npz or .mat holding X: (F, 3, K), (F, K, 3) or (3F, K)"
+                       if kind == "sequence" else "BVH motion capture file")
+        p.add_argument("--out_dir", required=True,
+                       help="writes OUT_DIR/NAME_train.json and OUT_DIR/NAME_test.json")
+        p.add_argument("--name", default=None, help="dataset name (default: the file's stem)")
+        p.add_argument("--views_per_frame", type=int, default=10,
+                       help="random cameras per frame (default: %(default)s)")
+        p.add_argument("--cameras", choices=("upright", "uniform"), default="upright",
+                       help="upright: any azimuth, limited elevation and roll (y is up); "
+                            "uniform: any rotation (default: %(default)s)")
+        p.add_argument("--max_elevation", type=float, default=0.5,
+                       help="upright cameras: elevation within +- this (radians), roll "
+                            "within half of it (default: %(default)s)")
+        p.add_argument("--test_fraction", type=float, default=0.2,
+                       help="fraction of the frame blocks (--hold_out=clips: of the clips) "
+                            "held out as test frames (default: %(default)s)")
+        p.add_argument("--n_blocks", type=int, default=10,
+                       help="contiguous frame blocks the sequence (or each clip) is cut into "
+                            "for the split (default: %(default)s)")
+        p.add_argument("--occlusion", type=float, default=0.0,
+                       help="probability that a point is hidden in a view; 3 points stay "
+                            "visible (default: %(default)s)")
+        p.add_argument("--noise", type=float, default=0.0,
+                       help="std of 2D noise, in units of the sequence scaled to RMS radius 1 "
+                            "(default: %(default)s)")
+        p.add_argument("--seed", type=int, default=0,
+                       help="seed of the split, cameras, occlusion and noise (default: "
+                            "%(default)s)")
         p.add_argument("--hold_out", choices=("blocks", "clips"), default="blocks",
                        help="with a 'clip' array in the .npz: test blocks inside every clip, "
                             "or whole clips")
-    p = sub.add_parser("coco")
-    p.add_argument("path")
-    p.add_argument("--out", required=True)
-    p.add_argument("--min_v", type=int, default=1)
-    p.add_argument("--category_id", type=int, default=None)
+    p = sub.add_parser("coco", help="2D-only data from COCO-style keypoint annotations")
+    p.add_argument("path", help="COCO-style keypoint annotations (.json)")
+    p.add_argument("--out", required=True, help="the JSON file to write")
+    p.add_argument("--min_v", type=int, default=1,
+                   help="a point is visible when its flag v >= this (1: labelled, 2: labelled "
+                        "and visible; default: %(default)s)")
+    p.add_argument("--category_id", type=int, default=None,
+                   help="keep only annotations of this category (default: all)")
     args = parser.parse_args(argv)
     if args.kind == "coco":
         with open(args.path) as f:

@@ -1,0 +1,193 @@
+"""What the package's commands share: bundled configs, quiet logs, one-line user errors.
+
+``c3dpo-train`` (``python -m c3dpo_jax.main``) and ``c3dpo-predict`` (``python -m
+c3dpo_jax.predict``) start through ``run``, which
+
+- reads ``--config=configs/NAME.py[:ARGS]`` from the configs shipped with the package
+  (``c3dpo_jax/configs`` when installed, the repository's ``configs/`` in a checkout) when
+  no such file exists relative to the working directory, so the documented commands work
+  from any directory after ``pip install``;
+- prints errors in the user's input (files, flag values, config overrides) as one line
+  ``error: MESSAGE`` on stderr with exit status 2 instead of a traceback (``--verbose``
+  keeps the traceback).
+
+``setup_logging`` drops library INFO chatter and writes log lines above the progress bar.
+"""
+
+import importlib.util
+import logging as py_logging
+import os
+import sys
+from collections.abc import Callable
+
+from absl import app, flags, logging
+from tqdm import tqdm
+
+# What input the user got wrong (json.JSONDecodeError and UnicodeDecodeError are ValueErrors;
+# OSError covers missing, unreadable and unwritable files).
+USER_ERRORS = (OSError, ValueError, KeyError)
+
+# INFO records from other packages are chatter: orbax logs dozens of lines per checkpoint,
+# JAX "Unable to initialize backend 'tpu'" on every CPU run, matplotlib its writers.
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def bundled_configs_dir() -> str:
+    """The configs shipped with the package: ``c3dpo_jax/configs`` in an installed wheel
+    (pyproject maps the repository's top-level ``configs/`` there), else the checkout's
+    ``configs/`` (an editable install or no install)."""
+    package = os.path.dirname(os.path.abspath(__file__))
+    installed = os.path.join(package, "configs")
+    return installed if os.path.isdir(installed) else os.path.join(os.path.dirname(package),
+                                                                   "configs")
+
+
+def resolve_config(value: str) -> str:
+    """A ``--config`` value -> the file for config_flags to load, ``:ARGS`` kept.
+
+    A path that exists relative to the working directory is kept; otherwise
+    ``configs/NAME.py`` is the bundled copy. Neither: FileNotFoundError listing the bundled
+    configs (config_flags would only fail later, with a longer message).
+    """
+    path, sep, args = value.partition(":")
+    if os.path.exists(path):
+        return value
+    parts = os.path.normpath(path).split(os.sep)
+    bundled = os.path.join(bundled_configs_dir(), *parts[1:])
+    if parts[0] == "configs" and len(parts) > 1 and os.path.isfile(bundled):
+        return bundled + sep + args
+    names = sorted(n for n in os.listdir(bundled_configs_dir())
+                   if n.endswith(".py") and not n.startswith("_"))
+    raise FileNotFoundError(f"config file {path!r} not found; the bundled configs are "
+                            + ", ".join(f"configs/{n}" for n in names))
+
+
+def use_configs_package(config_file: str) -> None:
+    """Makes ``configs`` (the config files import each other as ``from configs import
+    default``) the package for ``config_file``.
+
+    config_flags executes the file by path, so that import needs ``configs`` in
+    ``sys.modules`` or on ``sys.path``: the file's own ``configs`` package when it lives in
+    one (the repository's, or the bundled copy even when the working directory holds
+    another ``configs``), else the bundled configs when no ``configs`` is importable (a
+    config of the user's own after ``pip install``).
+    """
+    directory = os.path.dirname(os.path.abspath(config_file))
+    init = os.path.join(directory, "__init__.py")
+    if os.path.basename(directory) != "configs" or not os.path.isfile(init):
+        if "configs" in sys.modules or importlib.util.find_spec("configs") is not None:
+            return
+        directory = bundled_configs_dir()
+        init = os.path.join(directory, "__init__.py")
+    for name in [n for n in sys.modules if n == "configs" or n.startswith("configs.")]:
+        del sys.modules[name]  # submodules of another ``configs`` would shadow these files
+    spec = importlib.util.spec_from_file_location("configs", init,
+                                                  submodule_search_locations=[directory])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["configs"] = module
+    spec.loader.exec_module(module)
+
+
+def _resolve_config_argv(argv: list[str]) -> list[str]:
+    """``argv`` with its ``--config`` value (``=`` or next argument) resolved."""
+    argv = list(argv)
+    for i, arg in enumerate(argv):
+        name, eq, value = arg.partition("=")
+        if name not in ("--config", "-config") or not (eq or i + 1 < len(argv)):
+            continue
+        j, value = (i, value) if eq else (i + 1, argv[i + 1])
+        value = resolve_config(value)
+        argv[j] = f"{name}={value}" if eq else value
+        use_configs_package(value.partition(":")[0])
+    return argv
+
+
+def error_message(err: BaseException) -> str:
+    """``err`` as one line: a traceback that config_flags puts into its message is cut to
+    its last line; a missing key or config field is named as such."""
+    text = str(err).strip()
+    if "Traceback (most recent call last)" in text:
+        lines = [line.strip() for line in text.splitlines() if line.strip()]
+        head = lines[0].replace(" Error whilst parsing config file:", "")
+        return f"{head} {lines[-1]}"
+    if isinstance(err, AttributeError) and err.args and isinstance(err.args[0], KeyError):
+        # ml_collections, for an override naming no field: AttributeError(KeyError(message))
+        return "no config field " + "; ".join(str(err.args[0].args[0]).splitlines())
+    if isinstance(err, KeyError):
+        return f"missing key {text}"
+    return text
+
+
+def _fail(err: BaseException) -> None:
+    print(f"error: {error_message(err)}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _parse_flags(argv: list[str]) -> list[str]:
+    """absl's flag parsing, with ``--config`` resolved and one-line errors (exit status 2)."""
+    try:
+        return flags.FLAGS(_resolve_config_argv(argv))
+    except (flags.Error, AttributeError, *USER_ERRORS) as err:
+        if any(a.startswith("--verbose") for a in argv):
+            raise
+        _fail(err)
+
+
+def is_verbose(verbose: flags.FlagHolder) -> bool:
+    """``--verbose``, or absl's ``-v 1`` (debug logging)."""
+    return verbose.value or logging.get_verbosity() >= logging.DEBUG
+
+
+def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
+    """``app.run(main)`` as the package's commands run (module docstring)."""
+    # --helpshort lists the flags of the file in argv[0]: a console script defines none.
+    for flag in flags.FLAGS.get_key_flags_for_module(main.__module__):
+        flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
+
+    def guarded(argv):
+        try:
+            main(argv)
+        except USER_ERRORS as err:
+            if is_verbose(verbose):
+                raise
+            _fail(err)
+
+    app.run(guarded, flags_parser=_parse_flags)
+
+
+class _LogFilter(py_logging.Filter):
+    """Keeps warnings and errors, and INFO records of c3dpo_jax's own code whose format
+    string starts with none of ``hidden``."""
+
+    def __init__(self, hidden: tuple[str, ...]):
+        super().__init__()
+        self.hidden = hidden
+
+    def filter(self, record):
+        if record.levelno >= py_logging.WARNING:
+            return True
+        return (os.path.abspath(record.pathname).startswith(_PACKAGE_DIR)
+                and not str(record.msg).startswith(self.hidden))
+
+
+class _AboveTheBar:
+    """The log handler's stream: ``tqdm.write`` lifts the progress bar, writes the line and
+    redraws the bar below it, so that log lines never cut through the bar."""
+
+    def write(self, text: str) -> None:
+        tqdm.write(text, file=sys.stderr, end="")
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        """The handler closes its stream at exit; stderr stays open."""
+
+
+def setup_logging(hidden: tuple[str, ...] = ()) -> None:
+    """Quiet logs for a command: INFO only from c3dpo_jax (not orbax, JAX or matplotlib)
+    and not when its format string starts with one of ``hidden``; every line above the
+    progress bar."""
+    handler = logging.get_absl_handler()
+    handler.addFilter(_LogFilter(hidden))
+    handler.python_handler.setStream(_AboveTheBar())

@@ -1,0 +1,198 @@
+"""The commands' plumbing (c3dpo_jax/cli.py) and the package as pip builds it: bundled configs
+found from any directory, no top-level ``configs`` in the wheel, quiet logs, one-line errors."""
+
+import ast
+import importlib.util
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+
+import pytest
+from absl import flags
+
+from c3dpo_jax import cli
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BUNDLED_SYNTHETIC = os.path.join(cli.bundled_configs_dir(), "synthetic.py")
+
+
+@pytest.fixture
+def clean_configs_modules():
+    """Puts back the ``configs`` modules the test replaced (other tests import them)."""
+    saved = {n: m for n, m in sys.modules.items() if n == "configs" or n.startswith("configs.")}
+    yield
+    for name in [n for n in sys.modules if n == "configs" or n.startswith("configs.")]:
+        del sys.modules[name]
+    sys.modules.update(saved)
+
+
+def _load_like_config_flags(path):
+    """What ml_collections' config_flags does with --config=PATH: execute the file by path."""
+    spec = importlib.util.spec_from_file_location("config_config", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bundled_configs_are_the_repository_configs_in_a_checkout():
+    assert cli.bundled_configs_dir() == os.path.join(ROOT, "configs")
+
+
+def test_config_paths_resolve_to_the_bundled_copy_only_when_missing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert cli.resolve_config("configs/synthetic.py:smoke") == BUNDLED_SYNTHETIC + ":smoke"
+    assert cli.resolve_config("./configs/synthetic.py") == BUNDLED_SYNTHETIC
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "synthetic.py").write_text("")
+    assert cli.resolve_config("configs/synthetic.py:smoke") == "configs/synthetic.py:smoke"
+    with pytest.raises(FileNotFoundError, match="'configs/nope.py' not found.*configs/up3d.py"):
+        cli.resolve_config("configs/nope.py")
+    with pytest.raises(FileNotFoundError, match="'other/synthetic.py' not found"):
+        cli.resolve_config("other/synthetic.py")
+
+
+def test_argv_resolution_keeps_overrides_and_other_flags(tmp_path, monkeypatch,
+                                                         clean_configs_modules):
+    monkeypatch.chdir(tmp_path)
+    argv = ["prog", "--config", "configs/synthetic.py:smoke", "--config.seed=3", "--workdir=w"]
+    assert cli._resolve_config_argv(argv) == [
+        "prog", "--config", BUNDLED_SYNTHETIC + ":smoke", "--config.seed=3", "--workdir=w"]
+    assert cli._resolve_config_argv(["prog", "--config=configs/up3d.py"])[1] == (
+        "--config=" + os.path.join(cli.bundled_configs_dir(), "up3d.py"))
+
+
+def test_bundled_config_imports_its_siblings_over_another_configs_package(
+        tmp_path, monkeypatch, clean_configs_modules):
+    """A user's project with its own ``configs`` package: ``configs/synthetic.py`` (absent
+    there) is the bundled one, and its ``from configs import default`` the bundled default."""
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "__init__.py").write_text("")
+    (tmp_path / "configs" / "default.py").write_text("raise ImportError('the wrong default')")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    path = cli.resolve_config("configs/synthetic.py")
+    cli.use_configs_package(path)
+    config = _load_like_config_flags(path).get_config("smoke")
+    assert config.train.num_steps == 20
+    assert sys.modules["configs"].__path__ == [cli.bundled_configs_dir()]
+
+
+def test_own_config_importing_configs_works_when_no_configs_is_importable(
+        tmp_path, monkeypatch, clean_configs_modules):
+    """After ``pip install`` no ``configs`` is importable; a copy of configs/own_json.py
+    elsewhere still gets the bundled ``configs.default``."""
+    path = tmp_path / "mine.py"
+    shutil.copy(os.path.join(ROOT, "configs", "own_json.py"), path)
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "configs" else find_spec(name, *a))
+    for name in [n for n in sys.modules if n == "configs" or n.startswith("configs.")]:
+        del sys.modules[name]  # clean_configs_modules puts them back
+    cli.use_configs_package(str(path))
+    assert _load_like_config_flags(str(path)).get_config().data.source == "json"
+
+
+def test_error_messages_are_one_line():
+    assert cli.error_message(KeyError("kp_loc")) == "missing key 'kp_loc'"
+    typo = AttributeError(KeyError("'num_step'\nDid you mean \"num_steps\" instead?"))
+    assert cli.error_message(typo) == (
+        "no config field 'num_step'; Did you mean \"num_steps\" instead?")
+    wrapped = flags.IllegalFlagValueError(
+        "flag --config=c.py:smok: Error whilst parsing config file:\n\nTraceback (most recent "
+        "call last):\n  File \"c.py\", line 1\nValueError: unknown config variant(s) ['smok']\n")
+    assert cli.error_message(wrapped) == (
+        "flag --config=c.py:smok: ValueError: unknown config variant(s) ['smok']")
+
+
+def test_log_filter_keeps_own_info_and_drops_library_chatter_and_hidden_lines():
+    keep = cli._LogFilter(hidden=("step %d:",)).filter
+
+    def record(level, path, msg):
+        return logging.LogRecord("absl", level, path, 1, msg, (), None)
+
+    own = os.path.join(os.path.dirname(cli.__file__), "train.py")
+    orbax = os.path.join("site-packages", "orbax", "checkpoint", "manager.py")
+    assert keep(record(logging.INFO, own, "resumed from the checkpoint at step %d in %s"))
+    assert not keep(record(logging.INFO, own, "step %d: %s"))
+    assert not keep(record(logging.INFO, orbax, "Saving checkpoint"))
+    assert not keep(record(logging.INFO, "jax/_src/xla_bridge.py", "Unable to initialize"))
+    assert keep(record(logging.WARNING, orbax, "something is wrong"))
+
+
+def _pyproject():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as f:
+        return tomllib.load(f)
+
+
+def test_pyproject_ships_configs_inside_the_package_and_the_console_scripts():
+    from setuptools import find_packages
+
+    setup = _pyproject()["tool"]["setuptools"]
+    assert "configs" not in setup["packages"] and "c3dpo_jax.configs" in setup["packages"]
+    assert setup["package-dir"] == {"c3dpo_jax.configs": "configs"}
+    assert set(find_packages(ROOT, include=["c3dpo_jax*"])) <= set(setup["packages"])
+    for target in _pyproject()["project"]["scripts"].values():
+        module, function = target.split(":")
+        with open(importlib.util.find_spec(module).origin) as f:
+            tree = ast.parse(f.read())
+        assert function in {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+    with open(os.path.join(ROOT, "LICENSE")) as f:
+        assert f.readline().strip() == "MIT License" and "the c3dpo_jax authors" in f.read()
+
+
+def test_wheel_holds_the_configs_under_the_package_and_no_top_level_configs(tmp_path):
+    pytest.importorskip("setuptools", minversion="77")  # PEP 639 license fields
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(os.path.join(ROOT, name), src)
+    for name in ("c3dpo_jax", "configs"):
+        shutil.copytree(os.path.join(ROOT, name), src / name,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    subprocess.run([sys.executable, "-c", "from setuptools import build_meta as b; "
+                    f"b.build_wheel({str(tmp_path / 'dist')!r})"],
+                   cwd=src, check=True, capture_output=True, timeout=120)
+    (wheel,) = os.listdir(tmp_path / "dist")
+    with zipfile.ZipFile(tmp_path / "dist" / wheel) as z:
+        names = z.namelist()
+        entry_points = z.read("c3dpo_jax-0.1.0.dist-info/entry_points.txt").decode()
+        top_level = z.read("c3dpo_jax-0.1.0.dist-info/top_level.txt").decode().split()
+    assert top_level == ["c3dpo_jax"]
+    assert {n.split("/")[0] for n in names} == {"c3dpo_jax", "c3dpo_jax-0.1.0.dist-info"}
+    configs = sorted(n for n in os.listdir(os.path.join(ROOT, "configs")) if n.endswith(".py"))
+    assert sorted(n.split("/")[-1] for n in names if n.startswith("c3dpo_jax/configs/")) == configs
+    assert "c3dpo_jax-0.1.0.dist-info/licenses/LICENSE" in names
+    for script in ("c3dpo-train = c3dpo_jax.main:cli_main",
+                   "c3dpo-predict = c3dpo_jax.predict:cli_main",
+                   "c3dpo-import = c3dpo_jax.data.importers:main"):
+        assert script in entry_points
+
+
+def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_errors(
+        tmp_path, smoke_subprocess_env):
+    """A missing data file fails before training: one line, exit status 2; ``--verbose``
+    shows the traceback. Run where no ``configs/`` exists."""
+    env = dict(smoke_subprocess_env(), PYTHONPATH=ROOT)
+    args = [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/synthetic.py:smoke",
+            f"--workdir={tmp_path / 'run'}", "--config.data.train_path=missing.json",
+            "--config.data.test_path=missing.json"]
+    out = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 2, out.stderr[-3000:]
+    assert out.stderr == "error: dataset file 'missing.json' does not exist\n"
+    assert out.stdout.startswith(f"c3dpo_jax train: {BUNDLED_SYNTHETIC}:smoke -> ")
+    verbose = subprocess.run([*args, "--verbose"], cwd=tmp_path, env=env, capture_output=True,
+                             text=True, timeout=300)
+    assert verbose.returncode != 0 and "Traceback" in verbose.stderr
+    assert "config:" in verbose.stderr  # --verbose logs the resolved config
+    bad_variant = subprocess.run([*args[:3], "--config=configs/synthetic.py:smok", args[4]],
+                                 cwd=tmp_path, env=env, capture_output=True, text=True,
+                                 timeout=300)
+    assert bad_variant.returncode == 2
+    assert bad_variant.stderr.startswith("error: flag --config=") and bad_variant.stderr.endswith(
+        "ValueError: unknown config variant(s) ['smok']; known: ('smoke', 'base', 'equiv', "
+        "'full')\n")
