@@ -44,7 +44,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     assert (info["n_train"], info["n_test"]) == (48 * 3, 12 * 3)
     row = next(line for line in proc.stdout.splitlines() if line.startswith("| cmu131"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert len(cells) == 13 and cells[1] == "1"
+    assert len(cells) == 14 and cells[1] == "1"
     assert all(c != "-" and "nan" not in c for c in cells)
     assert (out / "lr.md").read_text().count("| cmu131 |") == 1
     # A finished run is not run again.

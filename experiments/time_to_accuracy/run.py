@@ -41,7 +41,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
-from c3dpo_jax.data import importers, load_splits  # noqa: E402
+from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
 from c3dpo_jax.state import create_train_state  # noqa: E402
 from configs import default, release  # noqa: E402
 from configs import humans as humans_config  # noqa: E402
@@ -81,12 +81,18 @@ def sequence_path(name: str) -> str:
 
 
 def dataset_name(name: str) -> str:
-    """Result-file name of a dataset: ``pickup`` for ``pickup`` and for ``dir/pickup.npz``."""
-    return os.path.splitext(os.path.basename(name))[0]
+    """Result-file name of a dataset: ``pickup`` for ``pickup``, ``dir/pickup.npz`` and
+    ``dir/pickup_train.json``."""
+    return os.path.splitext(os.path.basename(name))[0].removesuffix("_train")
 
 
 def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
-    """(train, test, protocol) for a sequence name/path or ``humans``."""
+    """(train, test, protocol) for a sequence name/path, ``humans``, or a ``NAME_train.json``
+    whose ``NAME_test.json`` lies beside it (e.g. a dataset made by experiments/dev_suite)."""
+    if name.endswith("_train.json"):
+        return (json_dataset.load(name), json_dataset.load(name.replace("_train.json",
+                                                                          "_test.json")),
+                "up3d" if os.path.basename(name).startswith("humans") else "default")
     if name == "humans":
         data_cfg = _override(humans_config.get_config(), FLAGS.set, "data.").data
         data_cfg.humans.n_train_poses = FLAGS.train_poses or data_cfg.humans.n_train_poses
