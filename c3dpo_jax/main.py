@@ -71,7 +71,11 @@ def main(argv):
     if verbose:
         logging.info("config:\n%s", config)
     if _MODE.value == "train":
-        results = train.train_and_evaluate(config, _WORKDIR.value)
+        try:
+            results = train.train_and_evaluate(config, _WORKDIR.value)
+        except train.Interrupted as err:  # Ctrl-C or SIGTERM: checkpointed, resumable
+            print(str(err), file=sys.stderr)
+            sys.exit(err.exit_code)
         if _FIGURES.value:
             _write_figures(config, _WORKDIR.value)
     else:

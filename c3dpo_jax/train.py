@@ -25,6 +25,8 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 import dataclasses
 import json
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from functools import partial
@@ -346,6 +348,53 @@ def _data_parallel_mesh(config) -> Mesh | None:
     return make_mesh(n)
 
 
+class Interrupted(Exception):
+    """Training stopped by SIGINT or SIGTERM after checkpointing the step it had reached;
+    ``exit_code`` is the shell's code for that signal (130, 143)."""
+
+    def __init__(self, message: str, exit_code: int):
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class _StopSignals:
+    """While active, SIGINT (Ctrl-C) and SIGTERM only record that a stop was asked for, so
+    the loop can finish its chunk, checkpoint and stop; a second signal acts as usual. Only
+    in the main thread (elsewhere signals cannot be caught)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.received, self.previous = None, {}
+
+    def _handle(self, signum, frame):
+        self.received = signum
+        for sig, handler in self.previous.items():  # a second signal: the usual behaviour
+            signal.signal(sig, handler)
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+
+
+def _trim_metrics(workdir: str, step: int) -> None:
+    """Drops ``metrics.jsonl`` records past ``step``: a resumed run replays those steps."""
+    path = os.path.join(workdir, "metrics.jsonl")
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [line for line in f if line.strip()]
+    keep = [line for line in lines if json.loads(line).get("step", 0) <= step]
+    if len(keep) < len(lines):
+        with open(path, "w") as f:
+            f.writelines(keep)
+
+
 def resolve_input_scale(config, train_data: KeypointData):
     """``model.keypoint_rescale = 0`` means "from the data": a copy of ``config`` with the
     value ``auto_keypoint_rescale`` gives for the training split (written to config.json,
@@ -385,6 +434,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     step, total = int(state.step), spec.total_steps
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
+    _trim_metrics(workdir, step)
     data = device_train_data(train_data, config.data.class_balanced)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
@@ -405,33 +455,43 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                 disable=not config.train.progress_bar, desc="train")
     writer = _MetricsWriter(workdir, pbar)
     tic = time.perf_counter()
-    while step < total:
-        stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
-                                        spec.eval_every))
-        state, metrics = chunk(state, data, train_key, n_steps=stop - step)
-        writer.push(step, metrics)
-        step = stop
-        if hooks.after_chunk is not None:
-            hooks.after_chunk(step, state)
-        stopping = hooks.should_stop is not None and hooks.should_stop(
-            step, train_s + time.perf_counter() - tic)
-        evaluating = spec.eval_every and step % spec.eval_every == 0 and step < total
-        if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
-            writer.flush()  # never checkpoint or score a state whose losses were not checked
-            train_s += time.perf_counter() - tic
-            if step % config.train.ckpt_every == 0 or step == total or stopping:
-                checkpoint.save(manager, step, state, force=step == total or stopping)
-            if evaluating:
-                history.append(evaluate(state, step))
-                logging.info("step %d: test %s", step,
-                             {k: v for k, v in history[-1].items() if k != "per_group"})
-                _write_results(workdir, {"history": history})
-                if hooks.after_evaluation is not None:
-                    hooks.after_evaluation(history[-1], state)
-            tic = time.perf_counter()
-        if stopping:
-            logging.info("stopped early at step %d of %d", step, total)
-            break
+    with _StopSignals() as signals:
+        while step < total:
+            stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
+                                            spec.eval_every))
+            state, metrics = chunk(state, data, train_key, n_steps=stop - step)
+            writer.push(step, metrics)
+            step = stop
+            if hooks.after_chunk is not None:
+                hooks.after_chunk(step, state)
+            stopping = signals.received is not None or (
+                hooks.should_stop is not None
+                and hooks.should_stop(step, train_s + time.perf_counter() - tic))
+            evaluating = (spec.eval_every and step % spec.eval_every == 0 and step < total
+                          and signals.received is None)
+            if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
+                writer.flush()  # never checkpoint or score a state whose losses were not checked
+                train_s += time.perf_counter() - tic
+                if step % config.train.ckpt_every == 0 or step == total or stopping:
+                    checkpoint.save(manager, step, state, force=step == total or stopping)
+                if evaluating:
+                    history.append(evaluate(state, step))
+                    logging.info("step %d: test %s", step,
+                                 {k: v for k, v in history[-1].items() if k != "per_group"})
+                    _write_results(workdir, {"history": history})
+                    if hooks.after_evaluation is not None:
+                        hooks.after_evaluation(history[-1], state)
+                tic = time.perf_counter()
+            if stopping:
+                logging.info("stopped early at step %d of %d", step, total)
+                break
+        if signals.received is not None:
+            pbar.close()
+            manager.wait_until_finished()
+            manager.close()
+            name = signal.Signals(signals.received).name
+            raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
+                              "the same command resumes from it", 128 + signals.received)
     writer.flush()
     train_s += time.perf_counter() - tic
     pbar.close()

@@ -74,6 +74,19 @@ def test_views_without_visible_points_leave_the_step_finite(setup):
     assert all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree.leaves(new_state.params))
 
 
+def test_huge_values_at_hidden_points_never_reach_the_loss(setup):
+    state, _, step, _ = setup
+    data = synthetic.make_split(16, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.3,
+                                noise=0.0, perspective=False, shape_seed=0, seed=1)
+    assert (data.vis == 0).any()
+    kp = np.where(data.vis[..., None] > 0, data.kp, 1e20)  # "ignored" entries of a file
+    huge = KeypointData(kp=kp, vis=data.vis).model_inputs()
+    clean = KeypointData(kp=data.kp * data.vis[..., None], vis=data.vis).model_inputs()
+    np.testing.assert_array_equal(huge["kp"], clean["kp"])
+    _, metrics = jax.jit(step)(state, jax.device_put(huge), jax.random.key(3))
+    assert np.isfinite(float(metrics["loss"]))
+
+
 def test_loss_falls_within_200_steps(setup):
     state, data, _, chunk = setup
     state, metrics = chunk(state, data, jax.random.key(1), n_steps=200)

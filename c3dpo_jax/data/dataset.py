@@ -54,9 +54,11 @@ class KeypointData:
         return KeypointData(**fields)
 
     def model_inputs(self) -> dict[str, np.ndarray]:
-        """The arrays the compiled step consumes (class mask of ones when absent)."""
+        """The arrays the compiled step consumes (class mask of ones when absent). Hidden
+        points are zeroed: whatever a file holds there never reaches the arithmetic (a huge
+        value would overflow in the squared distances before the visibility mask)."""
         out = {
-            "kp": self.kp.astype(np.float32),
+            "kp": np.where(self.vis[..., None] > 0, self.kp, 0.0).astype(np.float32),
             "vis": self.vis.astype(np.float32),
             "class_mask": (
                 np.ones_like(self.vis, np.float32)
