@@ -158,6 +158,7 @@ def run() -> dict:
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
     c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
+    c = train.resolve_input_scale(c, train_data)  # the cpu recipe sets it from the data
     spec = train.RunSpec.from_config(c)
     model_cfg = spec.model
     state = create_train_state(jax.random.key(FLAGS.seed), model_cfg, spec.optimizer())
