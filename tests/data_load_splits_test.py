@@ -1,5 +1,6 @@
 """config.data -> splits for every source, with the default config's sections."""
 
+import numpy as np
 import pytest
 
 from c3dpo_jax.data import download, load_splits
@@ -36,3 +37,35 @@ def test_own_json_needs_paths_and_release_resolves_names(tmp_path, monkeypatch):
     c.data.source = "nope"
     with pytest.raises(ValueError, match="unknown config.data.source 'nope'"):
         load_splits(c.data)
+
+
+def test_auto_keypoint_rescale_is_the_inverse_median_rms_radius_in_any_units():
+    from c3dpo_jax.data import KeypointData, auto_keypoint_rescale
+
+    rng = np.random.default_rng(0)
+    kp = rng.normal(size=(7, 5, 2)) * rng.uniform(0.5, 2.0, size=(7, 1, 1)) + 3.0
+    vis = (rng.uniform(size=(7, 5)) > 0.2).astype(np.float32)
+    vis[:, :2] = 1
+    vis[6] = [1, 0, 0, 0, 0]  # one visible point: no radius, ignored
+    radii = []
+    for m in range(6):
+        pts = kp[m][vis[m] > 0]
+        radii.append(np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean()))
+    data = KeypointData(kp=kp, vis=vis)
+    assert auto_keypoint_rescale(data) == pytest.approx(1 / np.median(radii), rel=1e-6)
+    in_pixels = KeypointData(kp=kp * 100, vis=vis)
+    assert auto_keypoint_rescale(in_pixels) == pytest.approx(auto_keypoint_rescale(data) / 100)
+    with pytest.raises(ValueError, match="cannot be set"):
+        auto_keypoint_rescale(KeypointData(kp=kp[6:], vis=vis[6:]))
+
+
+def test_resolve_input_scale_only_replaces_zero():
+    from c3dpo_jax import train
+    from c3dpo_jax.data import KeypointData
+    data = KeypointData(kp=np.array([[[0.0, 0.0], [2.0, 0.0]]]), vis=np.ones((1, 2)))
+    c = own_json.get_config()
+    assert c.model.keypoint_rescale == 0
+    assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(1.0)
+    assert c.model.keypoint_rescale == 0  # a copy, the caller's config is unchanged
+    c.model.keypoint_rescale = 0.25
+    assert train.resolve_input_scale(c, data).model.keypoint_rescale == 0.25
