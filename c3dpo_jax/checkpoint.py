@@ -12,7 +12,10 @@ import json
 import os
 from typing import Any
 
+import jax
+import numpy as np
 import orbax.checkpoint as ocp
+from absl import logging
 
 CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoints"
@@ -27,12 +30,45 @@ def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.Che
     )
 
 
+def _restore(manager: ocp.CheckpointManager, step: int, template):
+    """The state saved at ``step``, or None (with a warning naming it) when it cannot be read
+    or holds non-finite numbers: a half-written or half-deleted directory (a kill during a
+    save or the ``max_to_keep`` clean-up), a truncated, missing or damaged file."""
+    try:
+        state = manager.restore(step, args=ocp.args.StandardRestore(template))
+    except Exception as err:  # noqa: BLE001 (orbax raises many types for damaged files)
+        problem = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+        logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
+        return None
+    leaves = [np.asarray(x) for x in jax.tree.leaves(state)]
+    if not all(np.all(np.isfinite(x)) for x in leaves if np.issubdtype(x.dtype, np.floating)):
+        logging.warning("checkpoint %s/%d holds NaN or inf", manager.directory, step)
+        return None
+    return state
+
+
+def _restore_newest(manager: ocp.CheckpointManager, template):
+    """``(state, step)`` of the newest checkpoint that restores intact (broken ones are
+    skipped with a warning); ``(None, None)`` when there is none at all. Raises when
+    checkpoints exist but none can be read."""
+    steps = sorted(manager.all_steps(), reverse=True)
+    for step in steps:
+        state = _restore(manager, step, template)
+        if state is not None:
+            if step != steps[0]:
+                logging.warning("resuming from checkpoint %d, the newest intact one", step)
+            return state, step
+    if steps:
+        raise ValueError(f"no checkpoint under {manager.directory} can be read (steps "
+                         f"{steps}); delete that folder to start again")
+    return None, None
+
+
 def restore_or_init(manager: ocp.CheckpointManager, state):
-    """The latest saved state if there is one (restored onto ``state``'s structure)."""
-    step = manager.latest_step()
-    if step is None:
-        return state
-    return manager.restore(step, args=ocp.args.StandardRestore(state))
+    """The newest intact saved state if there is one (restored onto ``state``'s structure),
+    else ``state``."""
+    restored, _ = _restore_newest(manager, state)
+    return state if restored is None else restored
 
 
 def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
@@ -54,11 +90,19 @@ def load_config(workdir: str) -> dict[str, Any] | None:
 
 
 def restore_latest(workdir: str, template, step: int | None = None):
-    """Restores ``template``-shaped state from ``workdir`` (latest step by default)."""
+    """Restores ``template``-shaped state from ``workdir``: ``step``, or by default the newest
+    checkpoint that reads back intact."""
     manager = ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)))
-    step = manager.latest_step() if step is None else step
-    if step is None:
-        raise FileNotFoundError(f"no checkpoint found under {workdir}/{CHECKPOINT_DIR}")
-    state = manager.restore(step, args=ocp.args.StandardRestore(template))
-    manager.close()
+    try:
+        if step is None:
+            state, step = _restore_newest(manager, template)
+            if state is None:
+                raise FileNotFoundError(f"no checkpoint found under {workdir}/{CHECKPOINT_DIR}")
+        else:
+            state = _restore(manager, step, template)
+            if state is None:
+                raise ValueError(f"checkpoint {step} under {workdir}/{CHECKPOINT_DIR} cannot be "
+                                 "read (see the warning above)")
+    finally:
+        manager.close()
     return state, step

@@ -1,0 +1,69 @@
+"""Checkpoints: a damaged newest checkpoint is skipped for the newest intact one."""
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from c3dpo_jax import checkpoint
+
+
+def _weights(step: int):
+    return np.random.default_rng(step).normal(size=(64, 64)).astype(np.float32)
+
+
+def _save_three(workdir: str):
+    manager = checkpoint.make_manager(workdir, save_every=1)
+    for step in (1, 2, 3):  # random values: the array data is the biggest file
+        checkpoint.save(manager, step, {"w": jnp.asarray(_weights(step)), "n": jnp.int32(step)})
+    manager.wait_until_finished()
+    manager.close()
+    return os.path.join(workdir, checkpoint.CHECKPOINT_DIR)
+
+
+def _files(folder: str) -> list[str]:
+    return sorted((os.path.join(d, f) for d, _, fs in os.walk(folder) for f in fs),
+                  key=os.path.getsize)
+
+
+TEMPLATE = {"w": jnp.zeros((64, 64)), "n": jnp.int32(0)}
+
+
+# A failed read leaves orbax's asynchronous readers un-awaited; Python reports them as
+# unraisable exceptions when they are collected, which is not what these tests are about.
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+@pytest.mark.parametrize("damage", ["delete_data", "truncate_data", "empty_folder"])
+def test_a_damaged_newest_checkpoint_is_skipped_for_the_previous_one(tmp_path, damage, caplog):
+    ckpts = _save_three(str(tmp_path))
+    newest = os.path.join(ckpts, "3")
+    if damage == "empty_folder":  # e.g. a kill during max_to_keep's clean-up
+        for path in _files(newest):
+            os.remove(path)
+    else:
+        biggest = _files(newest)[-1]  # the array data
+        if damage == "delete_data":
+            os.remove(biggest)
+        else:
+            with open(biggest, "r+b") as f:
+                f.truncate(os.path.getsize(biggest) // 2)
+    state, step = checkpoint.restore_latest(str(tmp_path), TEMPLATE)
+    assert step == 2 and int(state["n"]) == 2
+    np.testing.assert_array_equal(state["w"], _weights(2))
+    assert "checkpoint" in caplog.text and "/3 cannot be read" in caplog.text
+    manager = checkpoint.make_manager(str(tmp_path), save_every=1)
+    assert int(checkpoint.restore_or_init(manager, TEMPLATE)["n"]) == 2
+    manager.close()
+    with pytest.raises(ValueError, match="checkpoint 3 .* cannot be read"):
+        checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=3)
+
+
+def test_non_finite_values_are_not_restored_and_no_intact_checkpoint_is_an_error(tmp_path):
+    manager = checkpoint.make_manager(str(tmp_path), save_every=1)
+    checkpoint.save(manager, 1, {"w": jnp.full((64, 64), jnp.nan), "n": jnp.int32(1)})
+    manager.wait_until_finished()
+    manager.close()
+    with pytest.raises(ValueError, match="no checkpoint under .* can be read"):
+        checkpoint.restore_latest(str(tmp_path), TEMPLATE)
+    with pytest.raises(FileNotFoundError, match="no checkpoint found"):
+        checkpoint.restore_latest(str(tmp_path / "elsewhere"), TEMPLATE)
