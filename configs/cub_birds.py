@@ -1,8 +1,7 @@
 """CUB-200-2011 birds, 15 keypoints, 2D only (no 3D ground truth: evaluation reports
-the reprojection error). The release published no CUB model and REFERENCE.md lists no
-CUB row in its hyperparameter table: these settings follow PASCAL3D+ (image
-coordinates, so keypoint_rescale 0.01; occlusions, so argmin_translation) and are our
-choice, not the release's.
+the reprojection error). The release published no CUB model and no CUB hyperparameters:
+these settings follow PASCAL3D+ (image coordinates, so keypoint_rescale 0.01; occlusions,
+so argmin_translation) and are our choice, not the release's.
 
   python -m c3dpo_jax.main --config=configs/cub_birds.py --workdir=runs/cub_birds \
       --config.data.train_path=cub_birds_train.json --config.data.test_path=cub_birds_val.json

@@ -1,9 +1,8 @@
 """Shared body of the release-dataset configs (official hyperparameters).
 
-Numbers are the release's ``cfgs/*.yaml`` (see ../shared/REFERENCE.md, "Official
-hyperparameters"): SGD with momentum 0.9, weight decay 5e-4 added to the gradient,
-lr 1e-3 x0.1 at the milestones, 1024-wide 6-block trunks for Phi and Psi, 4
-canonicalisation samples with any rotation, z-equivariance angle 0.3925, seed 0.
+Numbers are the release's ``cfgs/*.yaml``: SGD with momentum 0.9, weight decay 5e-4
+added to the gradient, lr 1e-3 x0.1 at the milestones, 1024-wide 6-block trunks for Phi
+and Psi, 4 canonicalisation samples with any rotation, z-equivariance angle 0.3925, seed 0.
 The ``:smoke`` variant swaps the files for generated low-rank data with the dataset's
 number of keypoints (unless --config.data.train_path is given), so it runs anywhere.
 """

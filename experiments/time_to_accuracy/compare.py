@@ -8,9 +8,9 @@
 Each argument is ``LABEL=GLOB`` (relative paths from this folder): run.py results of one
 setting. Prints a markdown table (per setting: the seeds' MPJPE at ``--at`` seconds in
 seed order, their mean; the mean change of each later setting against the first, paired
-by seed; the fitted mean shape) and, with ``--figure``, draws the same numbers: one panel
-per dataset, every seed and the mean per setting, and the issue's target (half the fitted
-mean shape's error).
+by seed; the fitted mean shape stored in the run files) and, with ``--figure``, draws the
+same numbers: one panel per dataset, every seed and the mean per setting, and the 2x
+target (half the fitted mean shape's error).
 """
 
 import argparse

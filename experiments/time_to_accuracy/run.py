@@ -9,14 +9,15 @@ centred) and writes ``OUT_DIR/DATASET__RECIPE__sSEED.json``::
   python experiments/time_to_accuracy/run.py --dataset=humans --recipe=official
   python experiments/time_to_accuracy/report.py   # table + figure from all results
 
-Datasets: the sequences of ``../shared/data/nrsfm`` by name (drink, face, jaws, pickup,
-stretch, yoga) or any ``.npz``/``.mat`` path (views made with
-``c3dpo_jax.data.importers.views_from_sequence``: ``--views_per_frame`` random cameras
-per frame, test frames in unseen blocks), or ``humans`` (the built-in synthetic
-humans, configs/humans.py's data). Recipes: ``cpu`` (the library default:
-``configs.default.cpu_recipe``; for ``humans`` configs/humans.py, which adds a 10x
-canonicalisation weight) and ``official`` (the release's h36m-style settings: 1024-wide
-6-block trunks, SGD lr 1e-3, momentum 0.9, weight decay 5e-4, batch 256).
+Datasets: the sequences of the development data by name (drink, face, jaws, pickup,
+stretch, yoga; not distributed with the repository, looked up in ``NRSFM_DIR``) or any
+``.npz``/``.mat`` path (views made with ``c3dpo_jax.data.importers.views_from_sequence``:
+``--views_per_frame`` random cameras per frame, test frames in unseen blocks), or
+``humans`` (the built-in synthetic humans, configs/humans.py's data). Recipes: ``cpu``
+(the library default: ``configs.default.cpu_recipe``; for ``humans`` configs/humans.py,
+which sets its own canonicalisation weight) and ``official`` (the release's h36m-style
+settings: 1024-wide 6-block trunks, SGD lr 1e-3, momentum 0.9, weight decay 5e-4, batch
+256).
 
 Replay mode (``--steps_per_s=R --compile_s=C``): instead of the clock, the run stops at
 ``R * (budget - C)`` steps and evaluates at the step counts the clock would have
@@ -108,7 +109,7 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
 
 
 def recipe_config(recipe: str, dataset: str, n_keypoints: int, protocol: str):
-    if recipe == "official":  # the release's h36m settings at the batch size of the issue
+    if recipe == "official":  # the release's h36m settings at batch 256
         c = release.release_config(
             None, name="experiment", n_keypoints=n_keypoints, basis=10, batch_size=256,
             rescale=1.0, argmin_translation=False, z_augment_angle=0.3925,
