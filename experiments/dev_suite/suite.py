@@ -85,7 +85,7 @@ def make_data(name: str, data_root: str, out: str) -> dict:
 
     paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
     info_path = os.path.join(out, "data", f"{name}.json")
-    if not os.path.exists(info_path):
+    if not all(os.path.exists(p) for p in (info_path, *paths.values())):
         if name == "humans":
             train, test = load_splits(humans_config.get_config().data)
             protocol = "up3d"
