@@ -395,14 +395,16 @@ def _trim_metrics(workdir: str, step: int) -> None:
             f.writelines(keep)
 
 
-def resolve_input_scale(config, train_data: KeypointData):
+def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = None):
     """``model.keypoint_rescale = 0`` means "from the data": a copy of ``config`` with the
-    value ``auto_keypoint_rescale`` gives for the training split (written to config.json,
-    so inference uses the same number); other values are returned unchanged."""
+    value a saved config (``saved``, a workdir's config.json) holds, else the one
+    ``auto_keypoint_rescale`` gives for the training split (written to config.json, so
+    inference uses the same number); other values are returned unchanged."""
     if config.model.keypoint_rescale != 0:
         return config
     config = config.copy_and_resolve_references()
-    config.model.keypoint_rescale = auto_keypoint_rescale(train_data)
+    config.model.keypoint_rescale = ((saved or {}).get("model", {}).get("keypoint_rescale")
+                                     or auto_keypoint_rescale(train_data))
     logging.info("input scale from the training data: model.keypoint_rescale=%.6g",
                  config.model.keypoint_rescale)
     return config
@@ -515,11 +517,7 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays.
     """
     train_data, test_data = load_splits(config.data)
-    saved = checkpoint.load_config(workdir) or {}
-    if config.model.keypoint_rescale == 0 and "model" in saved:  # the value training used
-        config = config.copy_and_resolve_references()
-        config.model.keypoint_rescale = saved["model"]["keypoint_rescale"]
-    config = resolve_input_scale(config, train_data)
+    config = resolve_input_scale(config, train_data, checkpoint.load_config(workdir))
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
     template = create_train_state(jax.random.key(0), model_cfg, spec.optimizer())

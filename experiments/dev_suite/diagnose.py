@@ -25,6 +25,7 @@ Written to ``OUT/diagnostics.jsonl``, one record per evaluation and split:
   deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
 """
 
+import ast
 import json
 import os
 import sys
@@ -48,6 +49,14 @@ flags.DEFINE_integer("seed", 0, "training seed")
 flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE")
 flags.DEFINE_string("diag_out", "/tmp/c3dpo_diag", "workdir of the run")
 flags.DEFINE_integer("n_train_views", 3000, "training views measured")
+
+
+def _literal(text: str):
+    """``"1.5"`` -> 1.5, ``"(8,)"`` -> (8,); anything else stays a string."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
 
 
 def _rms(x):
@@ -100,14 +109,7 @@ def main(argv):
     c.seed = FLAGS.seed
     c.train.progress_bar = False
     c.train.eval_every_steps = FLAGS.eval_every_steps
-    for item in FLAGS.set:
-        key, value = item.split("=", 1)
-        *parents, leaf = key.split(".")
-        node = c
-        for p in parents:
-            node = node[p]
-        node[leaf] = type(node[leaf])(json.loads(value)) if not isinstance(
-            node[leaf], str) else value
+    c.update_from_flattened_dict({k: _literal(v) for k, v in (i.split("=", 1) for i in FLAGS.set)})
     train_data = json_dataset.load(info["train"])
     test_data = json_dataset.load(info["test"])
     vpf = 30 if FLAGS.dataset == "humans" else (10 if FLAGS.dataset in suite.NRSFM else 3)
