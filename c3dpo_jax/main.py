@@ -14,7 +14,7 @@ import sys
 from absl import flags, logging
 from ml_collections import config_flags
 
-from c3dpo_jax import cli, evaluation, train
+from c3dpo_jax import cli, evaluation, train, validation
 
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "Config file FILE[:ARGS], e.g. configs/synthetic.py:smoke (configs/NAME.py: "
@@ -63,6 +63,7 @@ def _write_figures(config, workdir):
 def main(argv):
     del argv
     config = _CONFIG.value
+    validation.check_config(config)
     verbose = cli.is_verbose(_VERBOSE)
     # The bar shows the losses; the loop's "step N: {...}" lines (periodic metrics, test
     # scores: in metrics.jsonl and eval_results.json) would only repeat them at 16 digits.

@@ -39,7 +39,7 @@ from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from c3dpo_jax import baselines, checkpoint, evaluation, losses, model
+from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
 from c3dpo_jax.state import (
     OptimConfig,
@@ -418,6 +418,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     a resumed run continues the clock of its last record). Returns the final
     ``eval_results.json`` content (also written to ``workdir``).
     """
+    validation.check_config(config)
     hooks = hooks or Hooks()
     os.makedirs(workdir, exist_ok=True)
     train_data, test_data = load_splits(config.data)

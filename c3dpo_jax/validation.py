@@ -1,0 +1,200 @@
+"""Config values checked before anything is loaded, compiled or written.
+
+``check_config(config)`` raises one ``ValueError`` whose message is a single line naming
+every field out of range and the range it must lie in, e.g.
+``config.train.batch_size=0 (must be an integer >= 1)``. The entry points call it first,
+so a bad value never surfaces as a ``ZeroDivisionError``, a shape error inside JAX, a
+half-written checkpoint or a failure at the first evaluation minutes later.
+
+``config`` is anything with ``to_dict()`` (a ``ConfigDict``) or a nested dict; fields it
+does not have are not checked (older configs, subsets built by experiments).
+"""
+
+import dataclasses
+import math
+from typing import Any
+
+# Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
+PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
+OPTIMIZERS = ("sgd", "adam")  # state.make_optimizer
+MATMUL_PRECISIONS = (
+    "default",
+    "bfloat16",
+    "tensorfloat32",
+    "float32",
+    "high",
+    "highest",
+    "bfloat16_3x",
+)  # model.matmul_precision
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """Numbers from ``lo`` to ``hi`` (either end may be open or absent); ``integer``
+    excludes non-integral values (and booleans)."""
+
+    lo: int | float | None = None
+    hi: int | float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    integer: bool = False
+
+    def __contains__(self, value: Any) -> bool:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return False
+        if self.integer and not float(value).is_integer():
+            return False
+        if not math.isfinite(value):
+            return False
+        if self.lo is not None and (value <= self.lo if self.lo_open else value < self.lo):
+            return False
+        return self.hi is None or (value < self.hi if self.hi_open else value <= self.hi)
+
+    def __str__(self) -> str:
+        kind = "an integer" if self.integer else "a finite number"
+        lo = None if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        hi = None if self.hi is None else f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        if lo and hi:
+            return f"{kind} {lo} and {hi}"
+        return f"{kind} {lo or hi}" if lo or hi else kind
+
+
+@dataclasses.dataclass(frozen=True)
+class OneOf:
+    options: tuple[str, ...]
+
+    def __contains__(self, value: Any) -> bool:
+        return value in self.options
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(repr(o) for o in self.options)
+
+
+POSITIVE_INT = Range(lo=1, integer=True)
+COUNT = Range(lo=0, integer=True)
+POSITIVE = Range(lo=0, lo_open=True)
+NON_NEGATIVE = Range(lo=0)
+ANGLE = Range(lo=0, hi=math.pi)
+
+# Field -> allowed values. Each field is checked only when the config has it.
+RULES: dict[str, Range | OneOf] = {
+    "seed": Range(lo=0, hi=2**32 - 1, integer=True),
+    "data.protocol": OneOf(PROTOCOLS),
+    "data.min_visible": COUNT,
+    "data.synthetic.n_keypoints": POSITIVE_INT,
+    "data.synthetic.n_modes": POSITIVE_INT,
+    "data.synthetic.n_train": POSITIVE_INT,
+    "data.synthetic.n_test": POSITIVE_INT,
+    "data.synthetic.occlusion": Range(lo=0, hi=1, hi_open=True),
+    "data.synthetic.noise": NON_NEGATIVE,
+    "data.humans.n_train_poses": POSITIVE_INT,
+    "data.humans.n_test_poses": POSITIVE_INT,
+    "data.humans.views_per_pose": POSITIVE_INT,
+    "data.humans.dense_points": COUNT,
+    "data.humans.noise": NON_NEGATIVE,
+    "data.categories.n_train": POSITIVE_INT,
+    "data.categories.n_test": POSITIVE_INT,
+    "data.categories.occlusion": Range(lo=0, hi=1, hi_open=True),
+    "model.n_keypoints": POSITIVE_INT,
+    "model.shape_basis_size": POSITIVE_INT,
+    # The residual blocks' inner width is H // 4.
+    "model.n_fully_connected": Range(lo=4, integer=True),
+    "model.n_layers": COUNT,
+    "model.canonicalization_n_fully_connected": Range(lo=4, integer=True),
+    "model.canonicalization_n_layers": COUNT,
+    "model.n_rand_samples": POSITIVE_INT,
+    "model.keypoint_norm_type": OneOf(("to_mean", "to_root")),
+    "model.root_joint": COUNT,
+    "model.keypoint_rescale": NON_NEGATIVE,  # 0: from the training data
+    "model.projection_type": OneOf(("orthographic", "perspective")),
+    "model.perspective_depth_threshold": POSITIVE,
+    "model.depth_offset": Range(),
+    "model.z_augment_rot_angle": ANGLE,
+    "model.z_equivariance_rot_angle": ANGLE,
+    "model.canonicalization_rot_angle": ANGLE,
+    "model.huber_scaling": POSITIVE,
+    "model.reprojection_normalization": OneOf(("kp_total_count", "kp_count_per_image")),
+    "model.weight_init_std": NON_NEGATIVE,
+    "model.matmul_precision": OneOf(MATMUL_PRECISIONS),
+    "loss.w_reprojection": NON_NEGATIVE,
+    "loss.w_canonicalization": NON_NEGATIVE,
+    "optim.optimizer": OneOf(OPTIMIZERS),
+    "optim.lr": POSITIVE,
+    "optim.momentum": Range(lo=0, hi=1, hi_open=True),
+    "optim.weight_decay": NON_NEGATIVE,
+    "optim.gamma": POSITIVE,
+    "optim.warmup_steps": COUNT,
+    "train.batch_size": POSITIVE_INT,
+    "train.samples_per_epoch": POSITIVE_INT,
+    "train.epochs": COUNT,
+    "train.num_steps": COUNT,  # 0: epochs * samples_per_epoch // batch_size
+    "train.log_every": POSITIVE_INT,
+    "train.ckpt_every": POSITIVE_INT,
+    "train.eval_every_epochs": COUNT,  # 0: final evaluation only
+    "train.eval_every_steps": COUNT,
+    "train.eval_batch_size": POSITIVE_INT,
+}
+
+_MISSING = object()
+
+
+def _lookup(tree: dict, path: str) -> Any:
+    for part in path.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return _MISSING
+        tree = tree[part]
+    return tree
+
+
+def _cross_field(cfg: dict) -> list[str]:
+    """Rules between fields: one message for each that fails."""
+
+    def get(path: str) -> Any:
+        return _lookup(cfg, path)
+
+    problems = []
+    n, root = get("model.n_keypoints"), get("model.root_joint")
+    if (
+        get("model.keypoint_norm_type") == "to_root"
+        and isinstance(root, int)
+        and isinstance(n, int)
+        and not root < n
+    ):
+        problems.append(f"config.model.root_joint={root} (must be below model.n_keypoints={n})")
+    milestones = get("optim.lr_milestones")
+    if milestones is not _MISSING:
+        bad = [m for m in milestones or () if m not in COUNT]
+        if bad:
+            problems.append(
+                f"config.optim.lr_milestones={tuple(milestones)} (every milestone "
+                f"must be {COUNT}, in epochs)"
+            )
+    if get("train.num_steps") == 0 and get("train.epochs") == 0:
+        problems.append(
+            "config.train.num_steps=0 and config.train.epochs=0 (nothing to "
+            "train: set one of them >= 1)"
+        )
+    if get("loss.w_reprojection") == 0 and get("loss.w_canonicalization") == 0:
+        problems.append(
+            "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 "
+            "(at least one loss weight must be > 0)"
+        )
+    return problems
+
+
+def config_problems(config) -> list[str]:
+    """Every problem of ``config``, one ``config.FIELD=VALUE (must be ...)`` line each."""
+    cfg = config.to_dict() if hasattr(config, "to_dict") else dict(config)
+    problems = []
+    for path, allowed in RULES.items():
+        value = _lookup(cfg, path)
+        if value is not _MISSING and value not in allowed:
+            problems.append(f"config.{path}={value!r} (must be {allowed})")
+    return problems + _cross_field(cfg)
+
+
+def check_config(config) -> None:
+    """Raises ``ValueError`` with every problem of ``config`` on one line."""
+    problems = config_problems(config)
+    if problems:
+        raise ValueError("invalid config: " + "; ".join(problems))

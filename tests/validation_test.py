@@ -1,0 +1,188 @@
+"""Config validation: every bundled config passes; each bad value is one line naming the
+field and its range, before anything is written."""
+
+import importlib
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from c3dpo_jax import evaluation, model, state, validation
+from c3dpo_jax.data import KeypointData
+from configs import default
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CONFIG_NAMES = sorted(
+    n.removesuffix(".py")
+    for n in os.listdir(os.path.join(ROOT, "configs"))
+    if n.endswith(".py") and not n.startswith("_")
+)
+
+
+@pytest.mark.parametrize("name", CONFIG_NAMES)
+def test_every_bundled_config_is_valid(name):
+    module = importlib.import_module(f"configs.{name}")
+    if not hasattr(module, "get_config"):  # a helper the dataset configs share
+        return
+    for arg in (None, "smoke"):
+        assert validation.config_problems(module.get_config(arg)) == [], (name, arg)
+
+
+BAD = [
+    ("train.batch_size", 0, "config.train.batch_size=0 (must be an integer >= 1)"),
+    ("train.batch_size", -4, "config.train.batch_size=-4 (must be an integer >= 1)"),
+    ("train.ckpt_every", 0, "config.train.ckpt_every=0 (must be an integer >= 1)"),
+    ("train.eval_batch_size", 0, "config.train.eval_batch_size=0 (must be an integer >= 1)"),
+    ("train.num_steps", -5, "config.train.num_steps=-5 (must be an integer >= 0)"),
+    ("train.epochs", -1, "config.train.epochs=-1 (must be an integer >= 0)"),
+    ("train.samples_per_epoch", -10, "config.train.samples_per_epoch=-10 (must be an integer"),
+    ("model.shape_basis_size", 0, "config.model.shape_basis_size=0 (must be an integer >= 1)"),
+    ("model.n_keypoints", 0, "config.model.n_keypoints=0 (must be an integer >= 1)"),
+    ("model.huber_scaling", 0.0, "config.model.huber_scaling=0.0 (must be a finite number > 0)"),
+    ("model.projection_type", "fisheye", "(must be one of 'orthographic', 'perspective')"),
+    ("optim.lr", -0.001, "config.optim.lr=-0.001 (must be a finite number > 0)"),
+    ("optim.lr", 0.0, "config.optim.lr=0.0 (must be a finite number > 0)"),
+    ("optim.lr", math.nan, "config.optim.lr=nan (must be a finite number > 0)"),
+    ("optim.momentum", 1.5, "config.optim.momentum=1.5 (must be a finite number >= 0 and < 1)"),
+    ("optim.optimizer", "adamw", "config.optim.optimizer='adamw' (must be one of 'sgd', 'adam')"),
+    (
+        "data.protocol",
+        "h63m",
+        "config.data.protocol='h63m' (must be one of 'default', 'up3d', "
+        "'h36m', 'pascal3d', 'none')",
+    ),
+    ("data.min_visible", -1, "config.data.min_visible=-1 (must be an integer >= 0)"),
+    ("loss.w_reprojection", -1.0, "config.loss.w_reprojection=-1.0 (must be a finite number"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "message"), BAD)
+def test_each_bad_value_is_named_with_its_range(field, value, message):
+    c = default.get_config("smoke")
+    section, name = field.split(".")
+    c[section][name] = value
+    with pytest.raises(ValueError) as err:
+        validation.check_config(c)
+    text = str(err.value)
+    assert message in text and "\n" not in text
+    assert text.startswith("invalid config: ")
+
+
+def test_cross_field_rules():
+    c = default.get_config("smoke")
+    c.train.num_steps, c.train.epochs = 0, 0
+    c.model.keypoint_norm_type, c.model.root_joint, c.model.n_keypoints = "to_root", 17, 17
+    c.optim.lr_milestones = (3, -1)
+    c.loss.w_reprojection = c.loss.w_canonicalization = 0.0
+    problems = validation.config_problems(c)
+    assert problems == [
+        "config.model.root_joint=17 (must be below model.n_keypoints=17)",
+        "config.optim.lr_milestones=(3, -1) (every milestone must be an integer >= 0, in epochs)",
+        "config.train.num_steps=0 and config.train.epochs=0 (nothing to train: set one of "
+        "them >= 1)",
+        "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 (at least one "
+        "loss weight must be > 0)",
+    ]
+    c.model.root_joint = 16  # the others stay
+    assert len(validation.config_problems(c)) == 3
+
+
+def test_plain_dicts_and_partial_configs_are_checked():
+    assert validation.config_problems({"train": {"batch_size": 8}}) == []
+    assert validation.config_problems({"train": {"batch_size": True}}) == [
+        "config.train.batch_size=True (must be an integer >= 1)"
+    ]
+    assert validation.config_problems({"model": {"n_keypoints": "17"}}) == [
+        "config.model.n_keypoints='17' (must be an integer >= 1)"
+    ]
+
+
+def test_range_membership_matches_its_description():
+    """Property over edge values: ``v in Range`` is exactly the stated condition."""
+    values = [
+        -math.inf,
+        -2,
+        -1,
+        -0.5,
+        0,
+        0.0,
+        0.5,
+        1,
+        1.0,
+        2,
+        2.5,
+        math.inf,
+        math.nan,
+        True,
+        False,
+        None,
+        "1",
+    ]
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        lo, hi = sorted(rng.choice([-1, 0, 1, 2], 2))
+        r = validation.Range(
+            lo=float(lo),
+            hi=float(hi),
+            lo_open=bool(rng.integers(2)),
+            hi_open=bool(rng.integers(2)),
+            integer=bool(rng.integers(2)),
+        )
+        for v in values:
+            numeric = isinstance(v, int | float) and not isinstance(v, bool)
+            expect = (
+                numeric
+                and math.isfinite(v)
+                and (not r.integer or float(v).is_integer())
+                and (v > lo if r.lo_open else v >= lo)
+                and (v < hi if r.hi_open else v <= hi)
+            )
+            assert (v in r) == expect, (r, v)
+
+
+def test_choice_lists_match_the_code_that_uses_them():
+    assert sorted(validation.OPTIMIZERS) == sorted(state._OPTIMIZERS)
+    assert validation.MATMUL_PRECISIONS == model._PRECISIONS
+    rng = np.random.default_rng(0)
+    kp3d = rng.normal(size=(2, 3, 3))
+    data = KeypointData(kp=kp3d[..., :2], vis=np.ones((2, 3)), kp3d=kp3d)
+    for protocol in validation.PROTOCOLS:
+        if protocol != "none":
+            assert evaluation.evaluate(kp3d, data, protocol)["mpjpe"] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="unknown evaluation protocol"):
+        evaluation.evaluate(kp3d, data, "h63m")
+
+
+def test_cli_reports_bad_values_in_one_line_and_writes_nothing(tmp_path):
+    workdir = tmp_path / "run"
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "c3dpo_jax.main",
+            "--config=configs/synthetic.py:smoke",
+            f"--workdir={workdir}",
+            "--config.train.batch_size=0",
+            "--config.train.ckpt_every=0",
+            "--config.optim.lr=-1",
+            "--config.data.protocol=h63m",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 2, out.stderr[-3000:]
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: invalid config: "), out.stderr
+    for field in (
+        "train.batch_size=0",
+        "train.ckpt_every=0",
+        "optim.lr=-1.0",
+        "data.protocol='h63m'",
+    ):
+        assert field in lines[0]
+    assert not workdir.exists()
