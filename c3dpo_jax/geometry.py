@@ -15,9 +15,10 @@ from c3dpo_jax.types import Kp2, Kp3, Vis
 
 
 def masked_mean(x: Float[Array, " N *C"], mask: Float[Array, " N"]) -> Float[Array, "*C"]:
-    """Mean of the rows of ``x`` where ``mask`` is 1 (0 when no row is selected)."""
+    """Mean of the rows of ``x`` where ``mask`` is 1 (0 when no row is selected). Rows
+    where ``mask`` is 0 are selected away, not multiplied by 0 (inf * 0 is NaN)."""
     m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
-    return jnp.sum(x * m, axis=0) / jnp.maximum(jnp.sum(mask), 1.0)
+    return jnp.sum(jnp.where(m > 0, x * m, 0.0), axis=0) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
 def normalise_keypoints(

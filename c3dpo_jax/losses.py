@@ -33,7 +33,7 @@ def reprojection(
     own visible points first, then averages the images (the release crashes on this
     option; here it works).
     """
-    masked = repro * vis
+    masked = jnp.where(vis > 0, repro * vis, 0.0)  # a hidden point's inf never becomes NaN
     if normalization == "kp_total_count":
         return jnp.sum(masked) / jnp.maximum(jnp.sum(vis), 1.0)
     if normalization == "kp_count_per_image":

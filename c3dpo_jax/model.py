@@ -129,7 +129,9 @@ def _camera(cfg: ModelConfig, phi_out, x_canon):
 
 def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
     """``(kp_cal, kp_norm, centre)``: calibrated keypoints (perspective) and the
-    network's centred, rescaled input with the centre that was removed."""
+    network's centred, rescaled input with the centre that was removed. Hidden points
+    are zeroed first: whatever they hold (1e20, NaN) never reaches the arithmetic."""
+    kp = jnp.where(vis[:, None] > 0, kp, 0.0)
     if cfg.projection_type == "perspective":
         if intrinsics is None:
             raise ValueError("a perspective model needs per-sample intrinsics K")
