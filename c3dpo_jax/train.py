@@ -52,16 +52,44 @@ from c3dpo_jax.state import (
 
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
-    """Weights of the objective ``w_reprojection * l_repro + w_canonicalization * l_canon``."""
+    """Weights of the objective ``w_reprojection * l_repro + w_canonicalization * l_canon``.
+
+    ``canonicalization_ramp=(first, last)`` (steps) moves the canonicalisation weight
+    linearly from ``w_canonicalization`` at step ``first`` to ``w_canonicalization_final``
+    at step ``last`` (``first == last``: a jump); empty: the weight is constant."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0
+    w_canonicalization_final: float | None = None
+    canonicalization_ramp: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        ramp = tuple(int(s) for s in self.canonicalization_ramp)
+        object.__setattr__(self, "canonicalization_ramp", ramp)
+        if ramp and (len(ramp) != 2 or not 0 <= ramp[0] <= ramp[1]
+                     or self.w_canonicalization_final is None):
+            raise ValueError(
+                "loss.canonicalization_ramp must be (first_step, last_step) with "
+                "0 <= first_step <= last_step, and loss.w_canonicalization_final set; got "
+                f"{ramp} and {self.w_canonicalization_final}")
+
+    def canonicalization_weight(self, step):
+        """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
+        if not self.canonicalization_ramp:
+            return self.w_canonicalization
+        first, last = self.canonicalization_ramp
+        step = jnp.asarray(step, jnp.float32)
+        frac = jnp.clip((step - first) / (last - first), 0.0, 1.0) if last > first else (
+            (step >= first).astype(jnp.float32))
+        return self.w_canonicalization + frac * (
+            self.w_canonicalization_final - self.w_canonicalization)
 
 
 def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
-    """``loss_fn(params, batch_stats, batch, key) -> (objective, (batch_stats, metrics))``."""
+    """``loss_fn(params, batch_stats, batch, key, step=0) -> (objective, (batch_stats,
+    metrics))``; ``step`` only matters for a ramped canonicalisation weight."""
 
-    def loss_fn(params, batch_stats, batch, key):
+    def loss_fn(params, batch_stats, batch, key, step=0):
         variables = {"params": params, "batch_stats": batch_stats}
         keys = jax.random.split(key, batch["vis"].shape[0])
         intrinsics = batch.get("intrinsics")
@@ -75,7 +103,8 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             terms["repro"], batch["vis"], model_cfg.reprojection_normalization
         )
         l_canon = losses.canonicalisation(terms["canon"])
-        objective = loss_cfg.w_reprojection * l_repro + loss_cfg.w_canonicalization * l_canon
+        w_canon = loss_cfg.canonicalization_weight(step)
+        objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
         metrics = {
             "loss": objective,
             "loss/reprojection": l_repro,
@@ -91,7 +120,9 @@ def make_train_step(model_cfg, loss_cfg, tx: optax.GradientTransformation, sched
     grad_fn = jax.value_and_grad(make_loss_fn(model_cfg, loss_cfg), has_aux=True)
 
     def train_step(state: TrainState, batch, key):
-        (_, (stats, metrics)), grads = grad_fn(state.params, state.batch_stats, batch, key)
+        (_, (stats, metrics)), grads = grad_fn(
+            state.params, state.batch_stats, batch, key, state.step
+        )
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics = dict(metrics, grad_norm=optax.global_norm(grads))

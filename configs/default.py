@@ -57,7 +57,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         ),
     )
     c.model = dataclasses.asdict(ModelConfig())
-    c.loss = dict(w_reprojection=1.0, w_canonicalization=1.0)
+    # canonicalization_ramp=(first, last) steps: the canonicalisation weight moves linearly
+    # to w_canonicalization_final between them (train.LossConfig); () keeps it constant.
+    c.loss = dict(
+        w_reprojection=1.0, w_canonicalization=1.0,
+        w_canonicalization_final=ml_collections.config_dict.placeholder(float),
+        canonicalization_ramp=(),
+    )
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,
         lr_milestones=(), gamma=0.1, warmup_steps=0,

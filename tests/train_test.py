@@ -225,3 +225,26 @@ def test_every_variant_and_perspective_projection_train(variant, tmp_path):
     assert has_canon == cfg.canonicalization
     res = train.evaluate_split(state.variables, data, cfg, "default")
     assert np.isfinite(res["mpjpe"]) and np.isfinite(res["reprojection"])
+
+
+def test_canonicalisation_weight_ramp(setup):
+    """The ramped weight follows the linear schedule, and the objective uses the weight of
+    the step it is given: objective = l_repro + w(step) * l_canon at any step."""
+    ramp = train.LossConfig(w_canonicalization=1.0, w_canonicalization_final=3.0,
+                            canonicalization_ramp=(100, 300))
+    weights = [float(ramp.canonicalization_weight(s)) for s in (0, 100, 200, 300, 1000)]
+    np.testing.assert_allclose(weights, [1.0, 1.0, 2.0, 3.0, 3.0])
+    jump = train.LossConfig(w_canonicalization_final=0.5, canonicalization_ramp=(10, 10))
+    assert [float(jump.canonicalization_weight(s)) for s in (9, 10)] == [1.0, 0.5]
+    state, data, _, _ = setup
+    batch = jax.tree.map(lambda a: a[:16], data)
+    loss_fn = train.make_loss_fn(CFG, ramp)
+    for step, w in ((0, 1.0), (250, 2.5)):
+        objective, (_, m) = loss_fn(state.params, state.batch_stats, batch,
+                                    jax.random.key(3), step)
+        np.testing.assert_allclose(
+            objective, m["loss/reprojection"] + w * m["loss/canonicalisation"], rtol=1e-6)
+    with pytest.raises(ValueError, match="canonicalization_ramp"):
+        train.LossConfig(canonicalization_ramp=(5, 1), w_canonicalization_final=2.0)
+    with pytest.raises(ValueError, match="w_canonicalization_final"):
+        train.LossConfig(canonicalization_ramp=(1, 5))

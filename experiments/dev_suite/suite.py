@@ -34,6 +34,7 @@ no degradation) and the worst seed's baseline / final ratio (> 1: better than th
 import glob
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -71,7 +72,8 @@ flags.DEFINE_bool("report_only", False, "only print the tables of the runs alrea
 def parse_variant(text: str) -> tuple[str, list[str]]:
     """``"name:a.b=1,c.d=x"`` -> ``("name", ["a.b=1", "c.d=x"])``."""
     name, _, rest = text.partition(":")
-    overrides = [item for item in rest.split(",") if item]
+    # Split at commas that start the next KEY=, so tuple values such as (2000,4000) stay whole.
+    overrides = [item for item in re.split(r",(?=[\w.]+=)", rest) if item]
     for item in overrides:
         if "=" not in item:
             raise app.UsageError(f"variant {name!r}: {item!r} is not KEY=VALUE")
