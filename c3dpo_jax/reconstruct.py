@@ -4,8 +4,9 @@ Glossary: B batch, N keypoints, D shape-basis size. Inputs are user coordinates
 (pixels, or whatever units the model was trained on), points on the last axis:
 ``kp (N, 2)`` or ``(B, N, 2)``, ``vis (N,)`` or ``(B, N)`` in {0, 1}.
 
-``reconstruct`` checks its input on the host (clear ``ValueError`` s, before any
-tracing), pads the batch to the next power of two and runs one jitted, vmapped
+``reconstruct`` checks its input on the host (clear one-line ``ValueError`` s, before
+any tracing: shapes, an empty batch, NaN/inf or absurd values at visible points, a
+sample with nothing visible), pads the batch to the next power of two and runs one jitted, vmapped
 ``model.forward_eval``: a model compiles once per bucket size (1, 2, 4, ...), not once
 per batch size. Outputs are numpy arrays with the input's leading dimensions.
 """
@@ -116,29 +117,71 @@ def _bucket(b: int) -> int:
     return 1 << max(b - 1, 0).bit_length()
 
 
-def _as_batch(name: str, x, tail: tuple[int, ...], single: bool) -> np.ndarray:
+# Centred visible points further than this from their mean, in the model's normalised
+# units (training data lies within a few units), are not keypoints the model can read.
+MAX_NORMALISED_EXTENT = 1e4
+
+
+def _numeric(name: str, x) -> np.ndarray:
     try:
-        x = np.asarray(x, dtype=np.float32)
+        return np.asarray(x, dtype=np.float32)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{name} is not a numeric array ({err})") from None
+        first = (str(err).splitlines() or [""])[0]
+        raise ValueError(f"{name} is not a numeric array (a ragged or non-numeric list? "
+                         f"{first})") from None
+
+
+def _as_batch(name: str, x, tail: tuple[int, ...], single: bool, finite: bool = True):
+    x = _numeric(name, x)
     want = tail if single else ("B", *tail)
     if x.ndim != len(want) or x.shape[x.ndim - len(tail):] != tail:
         raise ValueError(f"{name} has shape {x.shape}, expected {want}")
-    if not np.all(np.isfinite(x)):
+    if finite and not np.all(np.isfinite(x)):
         raise ValueError(f"{name} contains NaN or inf")
     return x[None] if single else x
+
+
+def _samples(idx: np.ndarray) -> str:
+    return f"sample(s) {idx[:10].tolist()}" + (" ..." if idx.size > 10 else "")
+
+
+def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> None:
+    """Visible points must be finite, and their spread in the model's normalised units
+    below ``MAX_NORMALISED_EXTENT`` (float32 cannot reconstruct 1e20-sized inputs)."""
+    shown = vis[..., None] > 0
+    bad = np.flatnonzero((shown & ~np.isfinite(kp)).any((1, 2)))
+    if bad.size:
+        raise ValueError(f"kp contains NaN or inf at visible points of {_samples(bad)}")
+    pts = np.where(shown, kp, 0.0).astype(np.float64)
+    if K is not None:  # the model centres and scales calibrated points
+        homog = np.concatenate([pts, np.ones_like(pts[..., :1])], -1)
+        ray = np.einsum("bij,bnj->bni", np.linalg.inv(np.asarray(K, np.float64)), homog)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pts = ray[..., :2] / ray[..., 2:]
+    mean = (pts * shown).sum(1, keepdims=True) / np.maximum(shown.sum(1, keepdims=True), 1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        extent = np.where(shown, np.abs(pts - mean), 0.0).max((1, 2)) * cfg.keypoint_rescale
+    bad = np.flatnonzero(~(extent <= MAX_NORMALISED_EXTENT))
+    if bad.size:
+        raise ValueError(
+            f"kp of {_samples(bad)}: the visible points lie up to {extent[bad[0]]:.3g} from "
+            f"their mean in the model's normalised units (keypoint_rescale "
+            f"{cfg.keypoint_rescale:g}; its training data lies within a few units, the limit "
+            f"is {MAX_NORMALISED_EXTENT:g}): are the coordinates corrupt or in other units?")
 
 
 def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     """Host-side validation; returns batched float32 arrays (K and class_mask may be None)."""
     n = cfg.n_keypoints
-    kp_shape = np.shape(kp)
-    if len(kp_shape) not in (2, 3) or kp_shape[-1] != 2:
-        raise ValueError(f"kp has shape {kp_shape}, expected (N, 2) or (B, N, 2) with N = {n}")
-    if kp_shape[-2] != n:
-        raise ValueError(f"kp has {kp_shape[-2]} keypoints but the model expects N = {n}")
-    single = len(kp_shape) == 2
-    kp = _as_batch("kp", kp, (n, 2), single)
+    kp = _numeric("kp", kp)
+    if kp.ndim not in (2, 3) or kp.shape[-1] != 2:
+        raise ValueError(f"kp has shape {kp.shape}, expected (N, 2) or (B, N, 2) with N = {n}")
+    if kp.shape[-2] != n:
+        raise ValueError(f"kp has {kp.shape[-2]} keypoints but the model expects N = {n}")
+    single = kp.ndim == 2
+    if not single and kp.shape[0] == 0:
+        raise ValueError("kp is an empty batch (B = 0): pass at least one sample")
+    kp = _as_batch("kp", kp, (n, 2), single, finite=False)  # hidden points may hold anything
     vis = _as_batch("vis", vis, (n,), single)
     if vis.shape[0] != kp.shape[0]:
         raise ValueError(f"vis has batch size {vis.shape[0]} but kp has {kp.shape[0]}")
@@ -146,7 +189,7 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
         raise ValueError("vis must contain only 0 and 1")
     empty = np.flatnonzero(vis.sum(axis=1) == 0)
     if empty.size:
-        raise ValueError(f"sample(s) {empty[:10].tolist()} have no visible keypoint")
+        raise ValueError(f"{_samples(empty)} have no visible keypoint")
     if class_mask is not None:
         one = np.ndim(class_mask) == 1
         class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), one), vis.shape)
@@ -157,7 +200,8 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
         K = np.broadcast_to(_as_batch("K", K, (3, 3), np.ndim(K) == 2), (*vis.shape[:1], 3, 3))
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
-    return single, kp * vis[..., None], vis, K, class_mask
+    _check_values(cfg, kp, vis, K)
+    return single, np.where(vis[..., None] > 0, kp, np.float32(0)), vis, K, class_mask
 
 
 @jax.jit
@@ -172,8 +216,8 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
 
 def reconstruct(
     params: C3DPOParams,
-    kp: ArrayLike,
-    vis: ArrayLike,
+    kp: ArrayLike | list,
+    vis: ArrayLike | list,
     K: ArrayLike | None = None,
     class_mask: ArrayLike | None = None,
 ) -> Reconstruction:
@@ -182,7 +226,7 @@ def reconstruct(
     Args:
       params: from ``load`` or ``convert.from_official``.
       kp: (N, 2) or (B, N, 2) keypoints in the units the model was trained on
-        (invisible points may hold anything finite; they are zeroed).
+        (invisible points may hold anything, NaN included; they are zeroed).
       vis: (N,) or (B, N), 1 visible, 0 not; every sample needs a visible point.
       K: intrinsics (3, 3) or (B, 3, 3); required by perspective models only.
       class_mask: (N,) or (B, N) block of the sample's class (multi-class models).
@@ -196,5 +240,9 @@ def reconstruct(
     b = kp.shape[0]
     idx = np.arange(_bucket(b)) % b  # pad by repeating valid samples
     padded = [None if a is None else jnp.asarray(a[idx]) for a in (kp, vis, class_mask, K)]
-    out = jax.device_get(_reconstruct_batch(params, *padded))
-    return Reconstruction(*(np.asarray(a[0] if single else a[:b]) for a in out))
+    out = Reconstruction(*(np.asarray(a[:b]) for a in jax.device_get(
+        _reconstruct_batch(params, *padded))))
+    bad = np.flatnonzero(~np.isfinite(out.shape_3d).all((1, 2)))
+    if bad.size:  # a safety net: the checks above should leave nothing to catch here
+        raise ValueError(f"the reconstruction of {_samples(bad)} is not finite")
+    return Reconstruction(*(a[0] if single else a for a in out))

@@ -11,6 +11,7 @@ evaluation protocol, and ``image_path (M,)`` strings when the source names image
 import dataclasses
 
 import numpy as np
+from absl import logging
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +96,27 @@ def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0) -> float:
     return float(target_rms / np.median(radius))
 
 
+def check_spread(data: KeypointData, split: str) -> None:
+    """Degenerate data is refused, not trained on: raises when no view of ``data`` has two
+    distinct visible points (all keypoints zero or coincident, or none visible); warns
+    with the count when some views' visible points all coincide."""
+    vis = data.vis[..., None] > 0
+    lo = np.where(vis, data.kp, np.inf).min(1)
+    hi = np.where(vis, data.kp, -np.inf).max(1)
+    spread = (hi - lo).max(-1)  # -inf for a view with no visible point
+    flat = ~(spread > 0)
+    what = f"{split} split {data.name!r}" if data.name else f"{split} split"
+    if flat.all():
+        raise ValueError(f"{what}: no view has two distinct visible points (every view's "
+                         "visible keypoints coincide, e.g. all 0, or none is visible): "
+                         "nothing to learn from or to score")
+    coincident = np.flatnonzero(flat & (data.vis.sum(1) >= 2))
+    if coincident.size:
+        logging.warning("%s: %d of %d views have visible points that all coincide (entries "
+                        "%s%s); they carry no shape", what, coincident.size, len(data),
+                        coincident[:5].tolist(), " ..." if coincident.size > 5 else "")
+
+
 def load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
     """Returns ``(train, test)`` for a ``config.data`` section.
 
@@ -102,17 +124,28 @@ def load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
     ``source`` picks a generated dataset (``"synthetic"``, ``"humans"``,
     ``"categories"``, with parameters in ``config.data.<source>``) or ``"release"``,
     which resolves ``config.data.name`` to the release's files (downloaded once).
+    Errors name the split; a split with no spread at all is an error (``check_spread``).
     """
+    splits = _load_splits(data_cfg)
+    for split, data in zip(("train", "test"), splits, strict=True):
+        check_spread(data, split)
+    return splits
+
+
+def _load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
     from c3dpo_jax.data import categories, download, humans, json_dataset, synthetic
 
-    def load_json(path):
-        return json_dataset.load(path, min_visible=data_cfg.get("min_visible", 2),
-                                 drop_invalid=data_cfg.get("drop_invalid", False))
+    def load_json(path, split):
+        try:
+            return json_dataset.load(path, min_visible=data_cfg.get("min_visible", 2),
+                                     drop_invalid=data_cfg.get("drop_invalid", False))
+        except ValueError as err:
+            raise ValueError(f"{split} split: {err}") from None
 
     if data_cfg.train_path:
         if not data_cfg.test_path:
             raise ValueError("config.data.train_path is set but config.data.test_path is not")
-        return load_json(data_cfg.train_path), load_json(data_cfg.test_path)
+        return load_json(data_cfg.train_path, "train"), load_json(data_cfg.test_path, "test")
     generators = {"synthetic": synthetic.make_splits, "humans": humans.make_splits,
                   "categories": categories.make_splits}
     if data_cfg.source in generators:
@@ -122,7 +155,7 @@ def load_splits(data_cfg) -> tuple[KeypointData, KeypointData]:
                          "--config.data.train_path=TRAIN.json --config.data.test_path=TEST.json")
     if data_cfg.source == "release":
         paths = download.dataset_files(data_cfg.name, directory=data_cfg.get("data_dir") or None)
-        return load_json(paths[0]), load_json(paths[1])
+        return load_json(paths[0], "train"), load_json(paths[1], "test")
     raise ValueError(
         f"unknown config.data.source {data_cfg.source!r}: one of {sorted(generators)} or "
         "'release'; or pass --config.data.train_path=TRAIN.json "

@@ -9,9 +9,14 @@ PASCAL3D+ rule (as in the release): keypoints outside the bbox enlarged by 10% o
 each side are made invisible.
 
 Validation names the entry index and field of every problem: a missing field, a
-ragged list, a keypoint count N that differs from the other entries, NaN/inf,
-visibility not in {0, 1}, and fewer than ``min_visible`` visible points. Problems
-raise ``ValueError`` unless ``drop_invalid=True``, which drops (and logs) the entries.
+ragged list, a keypoint count N that differs from the other entries, NaN/inf (in
+``kp_loc`` at visible points only), a coordinate far outside the file's other points
+(more than ``OUTLIER_FACTOR`` times the file's typical distance of a point from its
+entry's median point, or beyond ``MAX_ABS``: a corrupt value, which float32 squares
+would overflow), visibility not in {0, 1}, and fewer than ``min_visible`` visible
+points. Problems raise one ``ValueError`` line naming the file unless
+``drop_invalid=True``, which drops (and logs) the entries. The coordinates of hidden
+points carry no data: they are stored as 0, whatever the file holds there.
 
 ``load`` converts a file once and caches the arrays next to it
 (``FILE.json`` -> ``FILE.c3dpo_cache.npz``), keyed by the file's size, mtime, an md5
@@ -30,8 +35,10 @@ from absl import logging
 
 from c3dpo_jax.data.dataset import KeypointData
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 _MAX_LISTED = 5
+OUTLIER_FACTOR = 1e4
+MAX_ABS = 1e12
 _OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
 
 
@@ -44,22 +51,22 @@ class _Problems:
     def add(self, i, message: str) -> None:
         self.by_entry.setdefault(int(i), f"entry {int(i)}: {message}")
 
-    def raise_or_drop(self, n_entries: int, drop_invalid: bool, name: str) -> np.ndarray:
+    def raise_or_drop(self, n_entries: int, drop_invalid: bool, label: str) -> np.ndarray:
         """Indices of the entries to keep (raises unless ``drop_invalid``)."""
         if not self.by_entry:
             return np.arange(n_entries)
         msgs = [self.by_entry[i] for i in sorted(self.by_entry)]
         if not drop_invalid:
             more = len(msgs) - _MAX_LISTED
-            tail = f"\n  ... and {more} more" if more > 0 else ""
+            tail = f"; ... and {more} more" if more > 0 else ""
             raise ValueError(
-                f"dataset {name!r}: {len(msgs)} invalid entries:\n  "
-                + "\n  ".join(msgs[:_MAX_LISTED]) + tail
-                + "\n(fix them, or pass drop_invalid=True / --config.data.drop_invalid=True "
+                f"{label}: {len(msgs)} invalid of {n_entries} entries: "
+                + "; ".join(msgs[:_MAX_LISTED]) + tail
+                + " (fix them, or pass drop_invalid=True / --config.data.drop_invalid=True "
                 "to drop them)"
             )
-        logging.warning("dataset %r: dropped %d of %d invalid entries; first: %s",
-                        name, len(msgs), n_entries, msgs[0])
+        logging.warning("%s: dropped %d of %d invalid entries; first: %s",
+                        label, len(msgs), n_entries, msgs[0])
         keep = np.ones(n_entries, bool)
         keep[sorted(self.by_entry)] = False
         return np.flatnonzero(keep)
@@ -92,6 +99,45 @@ def _check_finite(i_bad: np.ndarray, field: str, problems: _Problems) -> None:
         problems.add(i, f"field {field!r} contains NaN or inf")
 
 
+def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median over axis 1 of ``x (M, N, ...)`` where ``mask (M, N)``; NaN for none."""
+    m = mask.reshape(mask.shape + (1,) * (x.ndim - 2))
+    srt = np.sort(np.where(m, x, np.inf), axis=1)  # selected values first
+    count = np.broadcast_to(m.sum(1, keepdims=True), srt[:, :1].shape)
+    lo = np.take_along_axis(srt, np.maximum(count - 1, 0) // 2, axis=1)
+    hi = np.take_along_axis(srt, count // 2, axis=1)  # count < N unless all are selected
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, (lo + hi) / 2, np.nan)[:, 0]
+
+
+def _check_magnitude(points: np.ndarray, mask: np.ndarray, field: str, what: str,
+                     problems: _Problems) -> None:
+    """Coordinates of ``points (M, N, C)`` at ``mask (M, N)`` that lie more than
+    ``OUTLIER_FACTOR`` times the file's typical point-to-median distance from their
+    entry's median point (coordinate-wise), or beyond ``MAX_ABS``, are problems."""
+    mask = mask & np.isfinite(points).all(-1)
+    pts = points.astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        dist = np.abs(pts - _masked_median(pts, mask)[:, None]).max(-1)
+        typical = _masked_median(dist, mask)
+    typical = typical[np.isfinite(typical) & (typical > 0)]
+    scale = float(np.median(typical)) if typical.size else np.inf
+    bad = mask & ((np.abs(pts).max(-1) > MAX_ABS) | (dist > OUTLIER_FACTOR * scale))
+    if not bad.any():
+        return
+    # Named per entry: the flagged point farthest from the file's median point (with two
+    # visible points both lie far from their entry's median).
+    centre = np.median(pts[mask], axis=0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        far = np.where(bad, np.abs(pts - centre).max(-1), -1.0)
+    for i in np.flatnonzero(bad.any(1)):
+        k = int(np.argmax(far[i]))
+        value = pts[i, k][np.argmax(np.abs(pts[i, k]))]
+        problems.add(i, f"field {field!r} has {value:.3g} at {what} {k}, far outside the "
+                        f"file's other points (typical distance from an entry's median point: "
+                        f"{scale:.3g}; limit {OUTLIER_FACTOR:g} times that or {MAX_ABS:g})")
+
+
 def _n_keypoints(entries, problems: _Problems) -> int:
     """The most common length of ``kp_vis``; entries with another length are problems."""
     lengths = [len(e["kp_vis"]) if isinstance(e.get("kp_vis"), list) else -1 for e in entries]
@@ -119,14 +165,16 @@ def _groups(names: list[str]) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.array([lookup[n] for n in names], np.int32), unique
 
 
-def _unwrap(obj, name: str):
+def _unwrap(obj, name: str, source: str):
     if isinstance(obj, dict):
         if "data" not in obj:
-            raise ValueError(f"dataset {name!r}: a JSON object dataset needs a 'data' list")
+            raise ValueError(f"{source or f'dataset {name!r}'}: a JSON object dataset needs "
+                             "a 'data' list")
         name = obj.get("dataset", name) or name
         obj = obj["data"]
     if not isinstance(obj, list) or not obj:
-        raise ValueError(f"dataset {name!r}: a dataset must be a non-empty list of entries")
+        raise ValueError(f"{source or f'dataset {name!r}'}: a dataset must be a non-empty "
+                         "list of entries")
     return obj, name
 
 
@@ -155,6 +203,9 @@ def _optional_fields(entries, n: int, problems: _Problems) -> dict:
         _check_finite(np.flatnonzero(~np.isfinite(value).reshape(len(value), -1).all(1)),
                       field, problems)
         out[field] = np.swapaxes(value, 1, 2) if transpose else value
+    if "kp_loc_3d" in out:  # every point counts in the evaluation unless kp_defined says not
+        defined = out.get("kp_defined", np.ones(out["kp_loc_3d"].shape[:2])) > 0
+        _check_magnitude(out["kp_loc_3d"], defined, "kp_loc_3d", "point", problems)
     return out
 
 
@@ -175,19 +226,21 @@ def _info_fields(entries) -> dict:
     return out
 
 
-def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = False
-          ) -> KeypointData:
+def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = False,
+          source: str = "") -> KeypointData:
     """Parses and validates decoded JSON (a list, or the ``{"dataset", "data"}`` wrapper).
 
     Args:
       obj: the decoded JSON.
-      name: dataset name used in messages (the wrapper's ``dataset`` wins).
+      name: dataset name (the wrapper's ``dataset`` wins).
       min_visible: entries with fewer visible points are invalid.
       drop_invalid: drop invalid entries (logged with their count) instead of raising.
+      source: what messages call the data (e.g. its file); default: ``dataset NAME``.
     Returns:
       the valid entries as ``KeypointData``.
     """
-    entries, name = _unwrap(obj, name)
+    entries, name = _unwrap(obj, name, source)
+    label = source or f"dataset {name!r}"
     problems = _Problems()
     _check_required(entries, problems)
     ok = [e if i not in problems.by_entry else {"kp_loc": [[]], "kp_vis": []}
@@ -195,7 +248,9 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     n = _n_keypoints(ok, problems)
     kp = np.swapaxes(_stack(ok, "kp_loc", (2, n), problems), 1, 2)
     vis = _stack(ok, "kp_vis", (n,), problems)
-    _check_finite(np.flatnonzero(~np.isfinite(kp).all((1, 2))), "kp_loc", problems)
+    for i, k in zip(*np.nonzero((vis != 0) & ~np.isfinite(kp).all(-1)), strict=True):
+        problems.add(i, f"field 'kp_loc' contains NaN or inf at visible point {k}")
+    _check_magnitude(kp, vis == 1, "kp_loc", "visible point", problems)
     bad_vis = ~((vis == 0) | (vis == 1) | np.isnan(vis))
     for i, k in zip(*np.nonzero(bad_vis), strict=True):
         problems.add(i, f"field 'kp_vis' has value {vis[i, k]:g} at point {k} (must be 0 or 1)")
@@ -205,13 +260,14 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
                         f"min_visible={min_visible}")
     fields = _optional_fields(ok, n, problems)
     fields.update(_info_fields(ok))
-    keep = problems.raise_or_drop(len(entries), drop_invalid, name)
+    keep = problems.raise_or_drop(len(entries), drop_invalid, label)
     if len(keep) == 0:
-        raise ValueError(f"dataset {name!r}: every entry is invalid")
+        raise ValueError(f"{label}: every entry is invalid")
     fields = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in fields.items()}
     kp, vis = kp[keep], vis[keep]
     if "bbox" in fields:
         vis = vis * _bbox_visibility(kp, fields.pop("bbox"))
+    kp = np.where(vis[..., None] > 0, kp, np.float32(0))
     if "kp_loc_3d" in fields:
         fields["kp3d"] = fields.pop("kp_loc_3d")
     if "K" in fields:
@@ -285,12 +341,16 @@ def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: 
     cpath = cache_path(path)
     if cache and (data := _read_cache(cpath, key)) is not None:
         return data
-    with open(path) as f:
+    with open(path, encoding="utf-8") as f:
         try:
             obj = json.load(f)
         except json.JSONDecodeError as err:
             raise ValueError(f"{path} is not valid JSON: {err}") from None
-    data = parse(obj, name=name, min_visible=min_visible, drop_invalid=drop_invalid)
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path} is not a UTF-8 text (JSON) file: byte {err.start} "
+                             f"is {err.object[err.start:err.start + 1]!r}") from None
+    data = parse(obj, name=name, min_visible=min_visible, drop_invalid=drop_invalid,
+                 source=path)
     if cache:
         _write_cache(cpath, key, data)
     return data
