@@ -9,6 +9,10 @@ Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
 ``kp_vis``, or ``{"dataset", "data"}``), or COCO-style keypoint annotations
 (``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v > 0;
 annotations with no visible point are skipped with a warning).
+Pictures (``--figures``): the skeleton is ``--skeleton`` (a name such as ``h36m``, or
+index pairs ``0-1,1-2``), else the input file's, else the training data's; the up direction
+is ``--y_up``/``--noy_up``, else the input file's, else image convention (y down) for a
+COCO file and the training data's for the release's format.
 Output: ``.npz`` (arrays ``shape_3d (M, N, 3)``, ``shape_canonical``, ``rotation``,
 ``alpha``, ``kp_reprojected``, ``index`` (M,) = position in the input) or ``.json``
 (a list with one dict of nested lists per reconstructed sample).
@@ -34,7 +38,12 @@ def _define_flags() -> dict:
         "output": flags.DEFINE_string("output", None, "Reconstructions file (.json/.npz)."),
         "figures": flags.DEFINE_string("figures", None, "Optional directory for a few pictures."),
         "n_figures": flags.DEFINE_integer("n_figures", 3, "Samples to draw with --figures."),
-        "skeleton": flags.DEFINE_string("skeleton", None, "Skeleton for the pictures (e.g. h36m)."),
+        "skeleton": flags.DEFINE_string(
+            "skeleton", None, "Lines for the pictures: a built-in name (h36m, cub_birds, ...) or "
+            "index pairs such as 0-1,1-2,2-3 (default: the input's or the training data's)."),
+        "y_up": flags.DEFINE_bool(
+            "y_up", None, "Pictures: the input's y axis points up (motion capture) rather than "
+            "down (image pixels) (default: the input's or the training data's setting)."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 
@@ -74,7 +83,11 @@ def read_input(path: str) -> dict[str, np.ndarray]:
     except (json.JSONDecodeError, UnicodeDecodeError) as err:  # say which file
         raise ValueError(f"{path} is not a JSON file: {err}") from err
     if isinstance(obj, dict) and "annotations" in obj:
-        return read_coco(obj)
+        from c3dpo_jax.data.importers import coco_skeleton
+
+        out = read_coco(obj)
+        out["style"] = {"y_up": False, "skeleton": coco_skeleton(obj)}
+        return out
     from c3dpo_jax.data import json_dataset
 
     data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"))
@@ -83,6 +96,8 @@ def read_input(path: str) -> dict[str, np.ndarray]:
     for name, value in optional:
         if value is not None:
             out[name] = value
+    if isinstance(obj, dict):
+        out["style"] = {k: obj[k] for k in ("skeleton", "y_up") if obj.get(k) is not None}
     return out
 
 
@@ -105,32 +120,51 @@ def write_output(rec: Reconstruction, index: np.ndarray, path: str) -> None:
             json.dump(rows, f)
 
 
-def _figures(rec, inputs, out_dir: str, n: int, skeleton_name: str | None) -> None:
+def picture_style(workdir: str, inputs: dict, skeleton=None, y_up: bool | None = None
+                  ) -> tuple[list[tuple[int, int]], bool]:
+    """(skeleton pairs, y_up) for pictures of ``inputs``: the arguments, else the input
+    file's settings, else the training data's (``visualise.run_style``)."""
+    from c3dpo_jax import checkpoint, skeletons, visualise
+
+    given = {"skeleton": skeleton, "y_up": y_up}
+    style = dict(inputs.get("style", {}), **{k: v for k, v in given.items() if v is not None})
+    if not {"skeleton", "y_up"} <= style.keys():
+        if not os.path.exists(os.path.join(workdir, checkpoint.CONFIG_FILE)):  # a step dir
+            workdir = os.path.dirname(os.path.dirname(os.path.abspath(workdir)))
+        style = {**visualise.run_style(checkpoint.load_config(workdir) or {}), **style}
+    return (skeletons.skeleton(style.get("skeleton"), inputs["kp"].shape[1]),
+            bool(style.get("y_up", False)))
+
+
+def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool) -> None:
     from c3dpo_jax import visualise
 
     os.makedirs(out_dir, exist_ok=True)
-    edges = visualise.skeleton(skeleton_name, inputs["kp"].shape[1])
     for i in range(min(n, len(rec.shape_3d))):
         gt = inputs["kp3d"][i] if "kp3d" in inputs else None
         fig = visualise.plot_reconstruction_3d(
             rec.shape_3d[i], gt, edges, kp=inputs["kp"][i], vis=inputs["vis"][i],
-            title=f"sample {inputs['index'][i]}")
+            title=f"sample {inputs['index'][i]}", y_up=y_up,
+            kp_reprojected=rec.kp_reprojected[i])
         visualise.save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png"))
 
 
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
-        n_figures: int = 3, skeleton: str | None = None) -> Reconstruction:
+        n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None
+        ) -> Reconstruction:
     """What the command line does; returns the reconstructions it wrote."""
     _check_output(output)  # before the work, not after it
     params = load(workdir)
     inputs = read_input(input_path)
+    if figures:  # a bad --skeleton fails before the work too
+        edges, y_up = picture_style(workdir, inputs, skeleton, y_up)
     perspective = params.config.projection_type == "perspective"
     K = inputs.get("K") if perspective else None
     rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"))
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:
-        _figures(rec, inputs, figures, n_figures, skeleton)
+        _figures(rec, inputs, figures, n_figures, edges, y_up)
     return rec
 
 

@@ -1,8 +1,18 @@
-"""Pictures of inputs, reconstructions and training curves (matplotlib, Agg backend).
+"""Pictures of inputs and reconstructions (matplotlib, Agg backend).
 
 Numpy in, figure or file out. matplotlib is imported lazily inside each function, so
-importing this module (or the package) never loads it. Glossary: N keypoints,
-points on the last axis: ``kp (N, 2)``, ``vis (N,)``, ``shape (N, 3)``.
+importing this module (or the package) never loads it. Glossary: N keypoints, points on
+the last axis: ``kp (N, 2)``, ``vis (N,)``, ``shape (N, 3)`` in the camera frame.
+
+Up direction: the release's files are in image convention (x right, y **down**, camera
+looking along +z), the built-in humans and categories and the importers' views of
+motion capture have y **up** (``y_up=True``). The plots draw either with "up" up: for
+y-down data the y and depth axes run the other way (a half turn about x, not a mirror).
+Where a plot compares with ground truth, the truth is taken with the depth sign that
+fits the prediction better (the learned depth sign is arbitrary) and the title gives
+that sample's MPJPE (the ``default`` protocol: mean depth removed, in the data's units).
+``plot_training_curves`` (from ``c3dpo_jax.curves``) draws a run's losses and test error;
+``write_run_figures`` writes all of a run's pictures.
 """
 
 import json
@@ -11,148 +21,202 @@ import os
 import numpy as np
 from absl import logging
 
-# Keypoint index pairs of the release's plots (REFERENCE.md "Skeletons for plots").
-SKELETONS: dict[str, list[tuple[int, int]]] = {
-    "h36m": [(10, 9), (9, 8), (8, 14), (14, 15), (15, 16), (8, 11), (11, 12), (12, 13), (8, 7),
-             (7, 0), (1, 0), (1, 2), (2, 3), (0, 4), (4, 5), (5, 6)],
-    "cub_birds": [(1, 5), (5, 4), (4, 9), (9, 0), (0, 13), (0, 12), (0, 8), (12, 13), (1, 14),
-                  (14, 3), (3, 2), (2, 7), (1, 10), (1, 6), (2, 11), (2, 7), (8, 13)],
-    "pascal3d/car": [(0, 8), (0, 4), (4, 10), (8, 10), (10, 9), (9, 11), (8, 11), (11, 6), (9, 2),
-                     (2, 6), (4, 1), (5, 1), (0, 5), (5, 7), (1, 3), (7, 3), (3, 2), (7, 6)],
-    "pascal3d/aeroplane": [(2, 5), (1, 4), (5, 3), (3, 7), (7, 0), (0, 5), (5, 7), (5, 6), (6, 0),
-                           (6, 3), (2, 4), (2, 1)],
-    "pascal3d/motorbike": [(6, 2), (2, 9), (2, 3), (3, 8), (5, 8), (3, 5), (2, 1), (1, 0), (0, 7),
-                           (0, 4), (4, 7), (1, 4), (1, 7), (1, 5), (1, 8)],
-    "pascal3d/sofa": [(1, 5), (5, 4), (4, 6), (6, 2), (2, 0), (1, 0), (0, 4), (1, 3), (7, 5),
-                      (2, 3), (3, 7), (9, 7), (7, 6), (6, 8), (8, 9)],
-    "pascal3d/chair": [(7, 3), (6, 2), (9, 5), (8, 4), (7, 9), (8, 6), (6, 7), (9, 8), (9, 1),
-                       (8, 0), (1, 0)],
-}
+from c3dpo_jax import evaluation, skeletons
+from c3dpo_jax.curves import plot_training_curves
+from c3dpo_jax.curves import pyplot as _plt
+
+SKELETONS = skeletons.SKELETONS
+skeleton = skeletons.skeleton
+
+# Views of a reconstruction: (title, elevation, azimuth from the camera's direction), deg.
+VIEWS = (("camera view", 10, 0), ("side", 10, 90), ("top", 90, 0))
+# Plot defaults of the datasets the package knows (config data.source, or data.name for
+# the release's files): skeleton, and whether y points up.
+_DATASET_STYLES = {"humans": ("h36m", True), "categories": (None, True),
+                   "h36m": ("h36m", False), "h36m_hourglass": ("h36m", False),
+                   "cub_birds": ("cub_birds", False), "cub_birds_hrnet": ("cub_birds", False)}
+_PRED, _GT = "tab:blue", "0.55"
 
 
-def _plt():
-    import matplotlib
+def align_ground_truth(shape, gt) -> tuple[np.ndarray, np.ndarray, float]:
+    """Prediction and truth as the plots draw them, and the sample's MPJPE.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Both get their mean depth removed (the ``default`` protocol), the truth the depth sign
+    that gives the lower MPJPE, and both the same shift that centres the prediction.
+    Returns ``(shape, gt, mpjpe)``; ``gt`` None gives ``(centred shape, None, nan)``.
+    """
+    shape = np.asarray(shape, np.float64)
+    if gt is None:
+        return shape - shape.mean(0), None, float("nan")
+    ones = np.ones((1, len(shape)))
+    pred = evaluation.center_depth(shape[None], ones)[0]
+    gt = evaluation.center_depth(np.asarray(gt, np.float64)[None], ones)[0]
+    err = evaluation.mpjpe(pred[None], gt[None], ones)
+    if err["mpjpe_flip"][0] < err["mpjpe_orig"][0]:
+        gt = gt * np.array([1.0, 1.0, -1.0])
+    centre = pred.mean(0)
+    return pred - centre, gt - centre, float(err["mpjpe"][0])
 
-    return plt
 
+def plot_keypoints_2d(kp, vis=None, edges=(), ax=None, title: str = "", y_up: bool = False,
+                      kp_hidden=None):
+    """Input 2D keypoints with the skeleton; returns the axes.
 
-def skeleton(name: str | None, n_keypoints: int) -> list[tuple[int, int]]:
-    """Edges for ``name`` (empty when unknown or when indices exceed ``n_keypoints``)."""
-    edges = SKELETONS.get(name or "", [])
-    return [e for e in edges if max(e) < n_keypoints]
-
-
-def plot_keypoints_2d(kp, vis=None, edges=(), ax=None, title: str = ""):
-    """Input 2D keypoints (image convention: y down) with the skeleton; returns the axes."""
+    Visible points are filled. Hidden points have no input position: with ``kp_hidden``
+    (N, 2), e.g. the model's reprojection, they are drawn hollow there, their lines dashed.
+    """
     kp = np.asarray(kp, np.float64)
-    vis = np.ones(len(kp)) if vis is None else np.asarray(vis)
+    vis = np.ones(len(kp)) if vis is None else np.asarray(vis) > 0
+    hidden_at = None if kp_hidden is None else np.asarray(kp_hidden, np.float64)
+    pos = kp if hidden_at is None else np.where(vis[:, None], kp, hidden_at)
     if ax is None:
         ax = _plt().figure(figsize=(4, 4)).add_subplot(111)
     for i, j in edges:
-        if vis[i] > 0 and vis[j] > 0:
-            ax.plot(kp[[i, j], 0], kp[[i, j], 1], "-", color="tab:blue", lw=2)
-    ax.scatter(*kp[vis > 0].T, c="tab:red", s=20, zorder=3, label="visible")
-    ax.set_aspect("equal")
-    ax.invert_yaxis()
+        if vis[i] and vis[j]:
+            ax.plot(*pos[[i, j]].T, "-", color=_PRED, lw=2)
+        elif hidden_at is not None:
+            ax.plot(*pos[[i, j]].T, "--", color=_PRED, lw=1, alpha=0.7)
+    ax.scatter(*pos[vis].T, color=_PRED, s=22, zorder=3, label="visible")
+    if hidden_at is not None and (~vis).any():
+        ax.scatter(*pos[~vis].T, facecolors="white", edgecolors=_PRED, s=22, zorder=3,
+                   label="hidden (reprojected)")
+        ax.legend(loc="best", fontsize=7)
+    ax.set_aspect("equal", adjustable="datalim")
+    if not y_up:
+        ax.invert_yaxis()  # image convention: y grows downwards
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
     ax.set_title(title or "input 2D keypoints")
     return ax
 
 
-def _draw_3d(ax, shape, edges, color, label):
-    ax.scatter(*shape.T, color=color, s=12, label=label)
+def _draw_3d(ax, shape, edges, vis, color, *, gt: bool):
+    """One shape: the truth as wide pale lines and crosses, the prediction as thin lines
+    with filled (visible) and hollow (hidden in the input) dots drawn on top of it."""
+    z = 1 if gt else 3
     for i, j in edges:
-        ax.plot(*shape[[i, j]].T, "-", color=color, lw=1.5)
+        ax.plot(*shape[[i, j]].T, "-", color=color, lw=4.5 if gt else 1.6,
+                alpha=0.45 if gt else 1.0, solid_capstyle="round", zorder=z)
+    if gt:
+        ax.scatter(*shape.T, color=color, marker="x", s=22, zorder=z + 1, depthshade=False)
+        return
+    ax.scatter(*shape[vis].T, color=color, s=18, zorder=z + 1, depthshade=False)
+    if (~vis).any():
+        ax.scatter(*shape[~vis].T, facecolors="white", edgecolors=color, s=26, lw=1.2,
+                   zorder=z + 2, depthshade=False)
 
 
-def _set_equal_3d(ax, points):
+def _frame_3d(ax, points, y_up: bool, *, ticks: bool = True, unit: str = ""):
+    """Equal axes around ``points``; y-down data get their y and depth axes reversed."""
     centre = points.reshape(-1, 3).mean(0)
-    r = np.abs(points.reshape(-1, 3) - centre).max() + 1e-9
-    for axis, c in zip("xyz", centre, strict=True):
-        getattr(ax, f"set_{axis}lim")(c - r, c + r)
+    r = np.abs(points.reshape(-1, 3) - centre).max() * 1.05 + 1e-9
+    flip = (1, 1, 1) if y_up else (1, -1, -1)
+    for axis, c, s in zip("xyz", centre, flip, strict=True):
+        getattr(ax, f"set_{axis}lim")(*(c - s * r, c + s * r))
+    ax.set_box_aspect((1, 1, 1), zoom=1.1)
+    suffix = f" [{unit}]" if unit else ""
+    if ticks:
+        ax.set_xlabel("x" + suffix, labelpad=-6)
+        ax.set_ylabel("y" + suffix, labelpad=-6)
+        ax.set_zlabel("z (depth)" + suffix, labelpad=-6)
+        ax.tick_params(labelsize=7, pad=-2)
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_major_locator(_plt().MaxNLocator(4))
+    else:
+        ax.set_axis_off()
 
 
-def plot_reconstruction_3d(shape, gt=None, edges=(), views=((15, -75), (15, 15), (80, -90)),
-                           kp=None, vis=None, title: str = ""):
-    """The 3D shape (N, 3) seen from ``views`` (elev, azim), next to ``gt`` if given.
+def _legend_handles(has_gt: bool, has_hidden: bool):
+    from matplotlib.lines import Line2D
 
-    ``gt`` is flipped in depth when that matches ``shape`` better (the learned depth
-    sign is arbitrary) and centred on ``shape``'s mean. ``kp``/``vis`` add an input panel.
+    handles = [Line2D([], [], color=_PRED, marker="o", ms=4, lw=1.6, label="C3DPO")]
+    if has_hidden:
+        handles.append(Line2D([], [], color=_PRED, marker="o", mfc="white", ms=5, lw=0,
+                              label="C3DPO, hidden in input"))
+    if has_gt:
+        handles.append(Line2D([], [], color=_GT, marker="x", ms=5, lw=4, alpha=0.6,
+                              label="ground truth"))
+    return handles
+
+
+def plot_reconstruction_3d(shape, gt=None, edges=(), views=VIEWS, kp=None, vis=None,
+                           title: str = "", y_up: bool = False, unit: str = "",
+                           kp_reprojected=None):
+    """The 3D shape (N, 3) seen from ``views`` ((title, elev, azim from the camera)), with
+    the ground truth ``gt`` (N, 3) under it when given and its MPJPE in the title.
+
+    ``kp``/``vis`` add an input panel (hidden points at ``kp_reprojected`` when given);
+    ``vis`` also marks the prediction's hidden points hollow. ``y_up``: the module
+    docstring. Returns the figure.
     """
     plt = _plt()
-    shape = np.asarray(shape, np.float64)
-    shape = shape - shape.mean(0)
-    if gt is not None:
-        gt = np.asarray(gt, np.float64)
-        gt = gt - gt.mean(0)
-        flipped = gt * np.array([1.0, 1.0, -1.0])
-        if np.abs(flipped - shape).sum() < np.abs(gt - shape).sum():
-            gt = flipped
+    shape, gt, err = align_ground_truth(shape, gt)
+    vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
     panels = len(views) + (kp is not None)
-    fig = plt.figure(figsize=(4 * panels, 4))
+    fig = plt.figure(figsize=(3.8 * panels, 4.2))
     if kp is not None:
-        plot_keypoints_2d(kp, vis, edges, ax=fig.add_subplot(1, panels, 1))
-    for k, (elev, azim) in enumerate(views):
+        plot_keypoints_2d(kp, vis, edges, ax=fig.add_subplot(1, panels, 1), y_up=y_up,
+                          kp_hidden=kp_reprojected)
+    points = shape if gt is None else np.concatenate([shape, gt])
+    for k, (name, elev, azim) in enumerate(views):
         ax = fig.add_subplot(1, panels, k + 1 + (kp is not None), projection="3d")
-        # Camera frame: x right, y down, z forward; plot with y up for readability.
-        flip = np.array([1.0, -1.0, 1.0])
-        _draw_3d(ax, shape * flip, edges, "tab:blue", "C3DPO")
+        ax.computed_zorder = False  # draw the prediction over the truth
         if gt is not None:
-            _draw_3d(ax, gt * flip, edges, "tab:gray", "ground truth")
-        _set_equal_3d(ax, np.concatenate([shape, shape if gt is None else gt]) * flip)
+            _draw_3d(ax, gt, edges, vis, _GT, gt=True)
+        _draw_3d(ax, shape, edges, vis, _PRED, gt=False)
+        _frame_3d(ax, points, y_up, unit=unit)
         ax.view_init(elev=elev, azim=azim, vertical_axis="y")
-        ax.set_title(f"elev {elev}, azim {azim}")
-        if k == 0:
-            ax.legend(loc="upper left", fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
+        _hide_axis_along_view(ax, elev, azim)
+        ax.set_title(name, fontsize=10, pad=0)
+    fig.legend(handles=_legend_handles(gt is not None, bool((~vis).any())), loc="lower center",
+               ncol=3, fontsize=8, frameon=False)
+    head = title
+    if gt is not None:
+        head += f"{': ' if title else ''}MPJPE {err:.3g}{' ' + unit if unit else ''}"
+    if head:
+        fig.suptitle(head)
+    fig.subplots_adjust(left=0.04, right=0.98, bottom=0.12, top=0.86, wspace=0.12)
     return fig
 
 
-def save_rotation_gif(shape, path: str, edges=(), n_frames: int = 24, fps: int = 8) -> str:
-    """A GIF of ``shape`` (N, 3) turning once about the vertical axis."""
+def _hide_axis_along_view(ax, elev, azim) -> None:
+    """An axis that points at the viewer shows as a dot: its tick labels would pile up."""
+    e, a = np.deg2rad(elev), np.deg2rad(azim)
+    towards_viewer = np.abs([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)])
+    if towards_viewer.max() > 0.9:
+        axis = "xyz"[int(np.argmax(towards_viewer))]
+        getattr(ax, f"set_{axis}ticklabels")([])
+        getattr(ax, f"set_{axis}label")("")
+
+
+def save_rotation_gif(shape, path: str, edges=(), gt=None, vis=None, y_up: bool = False,
+                      n_frames: int = 24, fps: int = 8) -> str:
+    """A GIF of ``shape`` (N, 3) (over ``gt`` when given) turning once about the vertical."""
     plt = _plt()
     from matplotlib.animation import FuncAnimation, PillowWriter
 
-    shape = (np.asarray(shape, np.float64) - np.mean(shape, 0)) * np.array([1.0, -1.0, 1.0])
-    fig = plt.figure(figsize=(3.5, 3.5))
-    ax = fig.add_subplot(111, projection="3d")
+    shape, gt, err = align_ground_truth(shape, gt)
+    vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
+    points = shape if gt is None else np.concatenate([shape, gt])
+    fig = plt.figure(figsize=(4, 4.4))
+    ax = fig.add_axes((0, 0, 1, 0.92), projection="3d")
+    ax.computed_zorder = False
+    head = "C3DPO (blue)" + ("" if gt is None else f" and truth (grey): MPJPE {err:.3g}")
+    fig.text(0.5, 0.96, head, ha="center", va="center", fontsize=10)
 
     def frame(t):
         ax.cla()
-        _draw_3d(ax, shape, edges, "tab:blue", None)
-        _set_equal_3d(ax, shape)
-        ax.view_init(elev=15, azim=-90 + 360 * t / n_frames, vertical_axis="y")
+        if gt is not None:
+            _draw_3d(ax, gt, edges, vis, _GT, gt=True)
+        _draw_3d(ax, shape, edges, vis, _PRED, gt=False)
+        _frame_3d(ax, points, y_up, ticks=False)
+        ax.set_box_aspect((1, 1, 1), zoom=1.3)  # no ticks to make room for
+        ax.view_init(elev=10, azim=360 * t / n_frames, vertical_axis="y")
         return []
 
     FuncAnimation(fig, frame, frames=n_frames).save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
     return path
-
-
-def plot_training_curves(metrics_path: str):
-    """Losses (log scale) against step from a workdir's ``metrics.jsonl``."""
-    plt = _plt()
-    with open(metrics_path) as f:
-        records = [json.loads(line) for line in f if line.strip()]
-    if not records:
-        raise ValueError(f"{metrics_path} has no records")
-    steps = [r["step"] for r in records]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name in ("loss", "loss/reprojection", "loss/canonicalisation"):
-        values = [r.get(name, np.nan) for r in records]
-        if np.any(np.asarray(values) > 0):
-            ax.plot(steps, values, marker=".", label=name)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    return fig
 
 
 def save_figure(fig, path: str) -> str:
@@ -161,43 +225,75 @@ def save_figure(fig, path: str) -> str:
     return path
 
 
-def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton_name: str | None = None,
-                      out_dir: str | None = None) -> list[str]:
+def data_file_style(path: str) -> dict:
+    """``skeleton`` and ``y_up`` a JSON data file's wrapper names (``{}`` when none)."""
+    with open(path) as f:
+        obj = json.load(f)
+    if not isinstance(obj, dict):
+        return {}
+    return {k: obj[k] for k in ("skeleton", "y_up") if obj.get(k) is not None}
+
+
+def run_style(config: dict) -> dict:
+    """``skeleton`` and ``y_up`` for a run's pictures, from its ``config.json`` content:
+    what its test (else train) file says, else the built-in dataset's defaults."""
+    data = config.get("data", {})
+    for key in ("test_path", "train_path"):
+        if data.get(key) and os.path.exists(data[key]):
+            style = data_file_style(data[key])
+            if style:
+                return style
+    name = data.get("name") if data.get("source") == "release" else data.get("source")
+    edges, y_up = _DATASET_STYLES.get(name or "", (None, False))
+    return {"skeleton": edges, "y_up": y_up}
+
+
+def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None,
+                      y_up: bool | None = None, out_dir: str | None = None) -> list[str]:
     """Training curves and reconstructions of the first ``n_samples`` of ``data``.
 
     Args:
-      workdir: a trained workdir (config.json, checkpoints, metrics.jsonl).
+      workdir: a trained workdir (config.json, checkpoints, metrics.jsonl,
+        eval_results.json).
       data: a ``KeypointData`` (e.g. the test split); ground truth is drawn if it has any.
       n_samples: how many samples to draw (plus one rotating GIF of the first).
-      skeleton_name: a key of ``SKELETONS`` (default: the data's name when it is one).
+      skeleton: a name in ``SKELETONS``, ``"0-1,1-2"`` or index pairs (default:
+        ``run_style`` of the workdir's config).
+      y_up: whether the data's y axis points up (default: ``run_style``).
       out_dir: where to write (default ``workdir/figures``).
 
     Returns:
       The paths written.
     """
+    from c3dpo_jax import checkpoint
     from c3dpo_jax.reconstruct import load, reconstruct
 
     out_dir = out_dir or os.path.join(workdir, "figures")
     os.makedirs(out_dir, exist_ok=True)
     paths = []
-    metrics = os.path.join(workdir, "metrics.jsonl")
-    if os.path.exists(metrics):
-        curves = plot_training_curves(metrics)
-        paths.append(save_figure(curves, os.path.join(out_dir, "training_curves.png")))
+    if os.path.exists(os.path.join(workdir, "metrics.jsonl")):
+        fig = plot_training_curves(workdir)
+        paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
     if data is None:
         return paths
+    style = run_style(checkpoint.load_config(workdir) or {})
+    spec = style.get("skeleton") if skeleton is None else skeleton
+    edges = skeletons.skeleton(spec, data.n_keypoints)
+    y_up = bool(style.get("y_up", False)) if y_up is None else y_up
     params = load(workdir)
     n = min(n_samples, len(data))
     inputs = data.model_inputs()
     perspective = params.config.projection_type == "perspective"
     rec = reconstruct(params, data.kp[:n], data.vis[:n], class_mask=inputs["class_mask"][:n],
                       K=data.intrinsics[:n] if perspective else None)
-    edges = skeleton(skeleton_name or data.name, data.n_keypoints)
     for i in range(n):
         gt = None if data.kp3d is None else data.kp3d[i]
         fig = plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=data.kp[i], vis=data.vis[i],
-                                     title=f"sample {i}")
+                                     title=f"sample {i}", y_up=y_up,
+                                     kp_reprojected=rec.kp_reprojected[i])
         paths.append(save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
-    paths.append(save_rotation_gif(rec.shape_3d[0], os.path.join(out_dir, "rotation_0.gif"), edges))
+    gt = None if data.kp3d is None else data.kp3d[0]
+    paths.append(save_rotation_gif(rec.shape_3d[0], os.path.join(out_dir, "rotation_0.gif"),
+                                   edges, gt=gt, vis=data.vis[0], y_up=y_up))
     logging.info("wrote %d figures to %s", len(paths), out_dir)
     return paths

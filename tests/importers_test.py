@@ -99,6 +99,30 @@ def test_cli_writes_json_for_each_kind(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_files_say_how_to_draw_them(tmp_path):
+    """Views of motion capture are y-up with the BVH file's bones; COCO's image coordinates
+    are y-down with the category's skeleton (1-based there); --skeleton overrides both."""
+    assert importers.bvh_bones(TINY_BVH) == [(0, 1)]
+    assert importers.bvh_bones(TINY_BVH, include_end_sites=True) == [(0, 1), (1, 2)]
+    (tmp_path / "walk.bvh").write_text(TINY_BVH)
+    args = ["bvh", str(tmp_path / "walk.bvh"), "--out_dir", str(tmp_path), "--n_blocks", "2"]
+    importers.main(args)
+    wrapper = json.loads((tmp_path / "walk_test.json").read_text())
+    assert wrapper["y_up"] is True and wrapper["skeleton"] == [[0, 1]]
+    importers.main([*args, "--skeleton", "1-0", "--cameras", "uniform"])
+    wrapper = json.loads((tmp_path / "walk_train.json").read_text())
+    assert wrapper["y_up"] is False and wrapper["skeleton"] == [[1, 0]]
+    with pytest.raises(ValueError, match="unknown skeleton 'hand'"):
+        importers.main([*args, "--skeleton", "hand"])
+    coco = {"categories": [{"id": 1, "skeleton": [[1, 2], [2, 3]]}],
+            "annotations": [{"keypoints": [1, 2, 2, 3, 4, 2, 5, 6, 2]}]}
+    (tmp_path / "c.json").write_text(json.dumps(coco))
+    importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])
+    wrapper = json.loads((tmp_path / "o.json").read_text())
+    assert wrapper["y_up"] is False and wrapper["skeleton"] == [[0, 1], [1, 2]]
+    assert json_dataset.load(str(tmp_path / "o.json")).n_keypoints == 3
+
+
 def test_sequence_round_trip_trains(tmp_path):
     np.savez(tmp_path / "seq.npz", X=np.swapaxes(_sequence(f=40, k=8), 1, 2))
     importers.main(["sequence", str(tmp_path / "seq.npz"), "--out_dir", str(tmp_path),

@@ -8,6 +8,10 @@
 - COCO-style keypoints (``annotations[i].keypoints`` = [x, y, v] * K, v in {0, 1, 2}):
   a 2D-only training set (v >= ``min_v`` is visible).
 
+The files also say how to draw their samples (docs/data.md): ``y_up`` (true for views
+of motion capture by upright cameras, false for COCO's image coordinates) and
+``skeleton`` (``--skeleton``, else a BVH file's bones or the COCO category's skeleton).
+
 CLI::
 
   python -m c3dpo_jax.data.importers sequence drink.npz --out_dir data/ --name drink
@@ -25,6 +29,7 @@ import re
 import numpy as np
 from absl import logging
 
+from c3dpo_jax import skeletons
 from c3dpo_jax.data import json_dataset
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.data.synthetic import _random_rotations, _upright_rotations
@@ -227,6 +232,32 @@ def bvh_positions(text: str, include_end_sites: bool = False):
     return pos[:, keep], [names[j] for j in keep]
 
 
+def bvh_bones(text: str, include_end_sites: bool = False) -> list[tuple[int, int]]:
+    """(parent, child) index pairs of the joints ``bvh_positions`` returns."""
+    names, parents, *_ = parse_bvh(text)
+    keep = [j for j, n in enumerate(names) if include_end_sites or not n.endswith("_end")]
+    new = {j: k for k, j in enumerate(keep)}
+    return skeletons.from_parents([new.get(parents[j], -1) for j in keep])
+
+
+def coco_skeleton(obj: dict, category_id=None) -> list[tuple[int, int]] | None:
+    """The (0-based) skeleton of the COCO category (COCO's pairs count from 1), if any."""
+    for cat in obj.get("categories", []):
+        if cat.get("skeleton") and category_id in (None, cat.get("id")):
+            return [(int(a) - 1, int(b) - 1) for a, b in cat["skeleton"]]
+    return None
+
+
+def save(data: KeypointData, path: str, *, y_up: bool, skeleton=None) -> None:
+    """``json_dataset.save`` with the picture settings ``y_up`` and ``skeleton`` (pairs,
+    checked against the data's K) in the file's wrapper."""
+    style = {"y_up": bool(y_up)}
+    if skeleton:
+        style["skeleton"] = [list(e) for e in skeletons.skeleton(skeleton, data.n_keypoints)]
+    with open(path, "w") as f:
+        json.dump({"dataset": data.name, **style, "data": json_dataset.to_json_entries(data)}, f)
+
+
 def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id=None,
                  name: str = "coco") -> KeypointData:
     """COCO-style keypoint annotations -> 2D-only ``KeypointData`` (no ``kp3d``).
@@ -255,13 +286,17 @@ def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id
                         image_path=paths, name=name)
 
 
-def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str):
+def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str, **style):
     os.makedirs(out_dir, exist_ok=True)
     paths = [os.path.join(out_dir, f"{name}_{s}.json") for s in ("train", "test")]
     for data, path in zip((train, test), paths, strict=True):
-        json_dataset.save(data, path)
+        save(data, path, **style)
     print(f"wrote {paths[0]} ({len(train)}) and {paths[1]} ({len(test)}); "
           f"K={train.n_keypoints}: --config.model.n_keypoints={train.n_keypoints}")
+
+
+_SKELETON_HELP = ("lines for the pictures, stored in the files: a built-in name (h36m, "
+                  "cub_birds, ...) or index pairs such as 0-1,1-2,2-3")
 
 
 def main(argv=None) -> None:
@@ -302,6 +337,8 @@ def main(argv=None) -> None:
         p.add_argument("--hold_out", choices=("blocks", "clips"), default="blocks",
                        help="with a 'clip' array in the .npz: test blocks inside every clip, "
                             "or whole clips")
+        p.add_argument("--skeleton", default=None, help=_SKELETON_HELP + (
+            " (default: the BVH file's bones)" if kind == "bvh" else " (default: none)"))
     p = sub.add_parser("coco", help="2D-only data from COCO-style keypoint annotations")
     p.add_argument("path", help="COCO-style keypoint annotations (.json)")
     p.add_argument("--out", required=True, help="the JSON file to write")
@@ -310,17 +347,24 @@ def main(argv=None) -> None:
                         "and visible; default: %(default)s)")
     p.add_argument("--category_id", type=int, default=None,
                    help="keep only annotations of this category (default: all)")
+    p.add_argument("--skeleton", default=None,
+                   help=_SKELETON_HELP + " (default: the category's 'skeleton', if any)")
     args = parser.parse_args(argv)
     if args.kind == "coco":
         with open(args.path) as f:
-            data = coco_to_data(json.load(f), min_v=args.min_v, category_id=args.category_id)
-        json_dataset.save(data, args.out)
+            obj = json.load(f)
+        data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
+        save(data, args.out, y_up=False,
+             skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
         print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints})")
         return
     name = args.name or os.path.splitext(os.path.basename(args.path))[0]
+    bones = None
     if args.kind == "bvh":
         with open(args.path) as f:
-            x, _ = bvh_positions(f.read())
+            text = f.read()
+        x, _ = bvh_positions(text)
+        bones = bvh_bones(text)
     else:
         x = load_sequence(args.path)
     clip = load_clips(args.path) if args.kind == "sequence" else None
@@ -329,7 +373,9 @@ def main(argv=None) -> None:
         max_elevation=args.max_elevation, test_fraction=args.test_fraction,
         n_blocks=args.n_blocks, occlusion=args.occlusion, noise=args.noise, seed=args.seed,
         name=name, clip=clip, hold_out=args.hold_out)
-    _write_pair(train, test, args.out_dir, name)
+    # Upright cameras keep the sequence's y axis up in every view; uniform ones have no up.
+    _write_pair(train, test, args.out_dir, name, y_up=args.cameras == "upright",
+                skeleton=args.skeleton or bones)
 
 
 if __name__ == "__main__":
