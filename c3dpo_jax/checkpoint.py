@@ -77,8 +77,61 @@ def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) 
 
 
 def save_config(workdir: str, config: dict[str, Any]) -> None:
-    with open(os.path.join(workdir, CONFIG_FILE), "w") as f:
+    """Writes ``config.json`` whole or not at all (a kill mid-write leaves the old one)."""
+    path = os.path.join(workdir, CONFIG_FILE)
+    with open(path + ".tmp", "w") as f:
         json.dump(config, f, indent=2, sort_keys=True)
+    os.replace(path + ".tmp", path)
+
+
+# What makes a checkpoint another run's: the network (model), the optimiser and its
+# state (optim), and what the run learns from. The evaluation protocol, the test file
+# and the step counts may change between a run and its resumption.
+_RUN_DATA_FIELDS = ("train_path", "source", "min_visible", "drop_invalid", "class_balanced")
+
+
+def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
+    data = config.get("data", {})
+    ident = {"model": config.get("model", {}), "optim": config.get("optim", {}),
+             "data": {k: data[k] for k in _RUN_DATA_FIELDS if k in data}}
+    if data.get("train_path"):  # the files win over the source (data.load_splits)
+        ident["data"].pop("source", None)
+    elif data.get("source") == "release":
+        ident["data"]["name"] = data.get("name")
+    elif data.get("source") in data:  # a generator's parameters
+        ident["data"][data["source"]] = data[data["source"]]
+    return json.loads(json.dumps(ident, default=list))  # tuples as JSON lists
+
+
+def _differences(saved: Any, new: Any, path: str = "") -> list[str]:
+    """``section.field: A in the checkpoint's run, B now`` for every field both have."""
+    if isinstance(saved, dict) and isinstance(new, dict):
+        return [d for k in sorted(set(saved) & set(new))
+                for d in _differences(saved[k], new[k], f"{path}.{k}" if path else k)]
+    return [] if saved == new else [f"{path}: {saved!r} in the checkpoint's run, {new!r} now"]
+
+
+def has_checkpoint(workdir: str) -> bool:
+    """Whether ``workdir/checkpoints`` holds a step directory (intact or not)."""
+    directory = os.path.join(workdir, CHECKPOINT_DIR)
+    return os.path.isdir(directory) and any(n.isdigit() for n in os.listdir(directory))
+
+
+def check_workdir(workdir: str, config: dict[str, Any]) -> None:
+    """Refuses, in one line and before anything is written, to resume checkpoints made
+    with another model, optimiser or training data than ``config`` asks for. A workdir
+    without checkpoints (e.g. left by a run that failed before its first one) may be
+    reused by any run; fields that only one of the two configs has are not compared."""
+    saved = load_config(workdir)
+    if saved is None or not has_checkpoint(workdir):
+        return
+    diffs = _differences(_run_identity(saved), _run_identity(config))
+    if diffs:
+        more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+        raise ValueError(
+            f"{workdir} holds checkpoints of another run ({'; '.join(diffs[:3])}{more}); "
+            f"use a new --workdir, or delete {os.path.join(workdir, CHECKPOINT_DIR)} to start "
+            "again there")
 
 
 def load_config(workdir: str) -> dict[str, Any] | None:

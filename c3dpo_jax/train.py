@@ -455,12 +455,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     train_data, test_data = load_splits(config.data)
     config = resolve_input_scale(config, train_data)
     spec = RunSpec.from_config(config)
-    saved = checkpoint.load_config(workdir)
-    if saved is not None and saved.get("model") != config.model.to_dict():
-        raise ValueError(f"{workdir} holds a run with other model settings; use a new --workdir")
-    checkpoint.save_config(workdir, config.to_dict())
+    checkpoint.check_workdir(workdir, config.to_dict())
     _check_data(train_data, spec.model, "train")
     _check_data(test_data, spec.model, "test")
+    checkpoint.save_config(workdir, config.to_dict())  # only once every check has passed
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(

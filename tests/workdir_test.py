@@ -1,0 +1,102 @@
+"""Workdir reuse: a workdir without checkpoints takes any run; one with checkpoints refuses,
+before anything is written, a run with another model, optimiser or training data."""
+
+import json
+import os
+
+import pytest
+
+from c3dpo_jax import checkpoint, train
+from c3dpo_jax.reconstruct import load
+from configs import default
+
+
+def _config(**changes):
+    c = default.apply_variants(default.get_config(), "smoke")
+    c.model.n_keypoints = c.data.synthetic.n_keypoints = 8
+    c.model.shape_basis_size = 3
+    c.train.num_steps, c.train.ckpt_every, c.train.log_every = 10, 10, 5
+    c.train.progress_bar = False
+    c.update_from_flattened_dict(changes)
+    return c
+
+
+def _workdir(tmp_path, with_checkpoint: bool):
+    workdir = str(tmp_path / "w")
+    os.makedirs(os.path.join(workdir, "checkpoints", "10" if with_checkpoint else ""))
+    checkpoint.save_config(workdir, _config().to_dict())
+    return workdir
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ({"optim.optimizer": "adam"}, "optim.optimizer: 'sgd' in the checkpoint's run, 'adam' now"),
+        ({"optim.lr_milestones": (3,)}, "optim.lr_milestones: [] in the checkpoint's run, [3] now"),
+        ({"model.shape_basis_size": 4}, "model.shape_basis_size: 3 in the checkpoint's run, 4 now"),
+        ({"data.synthetic.seed": 1}, "data.synthetic.seed: 0 in the checkpoint's run, 1 now"),
+        (
+            {"data.source": "humans"},
+            "data.source: 'synthetic' in the checkpoint's run, 'humans' now",
+        ),
+        (
+            {"data.train_path": "a.json"},
+            "data.train_path: '' in the checkpoint's run, 'a.json' now",
+        ),
+        ({"data.class_balanced": True}, "data.class_balanced: False in the checkpoint's run"),
+    ],
+)
+def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, named):
+    workdir = _workdir(tmp_path, with_checkpoint=True)
+    with pytest.raises(ValueError) as err:
+        checkpoint.check_workdir(workdir, _config(**change).to_dict())
+    text = str(err.value)
+    assert text.startswith(f"{workdir} holds checkpoints of another run (") and named in text
+    assert "\n" not in text and "use a new --workdir" in text
+    empty = _workdir(tmp_path / "empty", with_checkpoint=False)
+    checkpoint.check_workdir(empty, _config(**change).to_dict())  # nothing to protect
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"train.num_steps": 50},
+        {"train.ckpt_every": 5},
+        {"data.protocol": "none"},
+        {"data.test_path": "b.json"},
+        {"loss.w_canonicalization": 3.0},
+        {"seed": 1},
+    ],
+)
+def test_what_a_resumed_run_may_change(tmp_path, change):
+    checkpoint.check_workdir(_workdir(tmp_path, with_checkpoint=True), _config(**change).to_dict())
+
+
+def test_fields_only_one_config_has_are_not_compared(tmp_path):
+    workdir = _workdir(tmp_path, with_checkpoint=True)
+    newer = _config().to_dict()
+    newer["optim"]["an_option_added_later"] = 1
+    checkpoint.check_workdir(workdir, newer)
+
+
+def test_config_json_is_replaced_whole(tmp_path):
+    checkpoint.save_config(str(tmp_path), {"a": 1})
+    checkpoint.save_config(str(tmp_path), {"a": 2})
+    assert os.listdir(tmp_path) == ["config.json"]
+    assert checkpoint.load_config(str(tmp_path)) == {"a": 2}
+
+
+def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_intact(tmp_path):
+    workdir = str(tmp_path / "run")
+    with pytest.raises(ValueError, match="set --config.model.n_keypoints=8"):
+        train.train_and_evaluate(_config(**{"model.n_keypoints": 7}), workdir)
+    assert checkpoint.load_config(workdir) is None  # nothing recorded for a run that never ran
+    result = train.train_and_evaluate(_config(), workdir)  # the suggested K, same workdir
+    assert result["final"]["step"] == 10
+    saved = (tmp_path / "run" / "config.json").read_bytes()
+    for change in ({"optim.optimizer": "adam"}, {"data.synthetic.seed": 5}):
+        with pytest.raises(ValueError, match="holds checkpoints of another run"):
+            train.train_and_evaluate(_config(**change), workdir)
+        assert (tmp_path / "run" / "config.json").read_bytes() == saved
+    assert load(workdir).config.n_keypoints == 8
+    assert json.loads(saved)["optim"]["optimizer"] == "sgd"
