@@ -3,11 +3,21 @@
 Layout of a workdir::
 
     workdir/config.json          the resolved config (model settings for ``load``)
-    workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree
+    workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree, and
+                                 c3dpo_sha256.json: the sha256 of each of its files
     workdir/metrics.jsonl        one JSON line per logged chunk of steps
     workdir/eval_results.json    evaluation history, final metrics and baselines
+
+A checkpoint proves itself before it is used: orbax does not check that its data files
+hold what was written (flipped bytes can decode into wrong numbers), so once a save has
+finished the manager records the sha256 of every file of the step, and a restore first
+compares them; a checkpoint that is incomplete, fails its checksums, cannot be read or
+holds NaN/inf is skipped with a one-line warning for the newest intact one. A step
+without the record (a kill between the save and the record, or an older workdir) is
+checked for readability and finite values only.
 """
 
+import hashlib
 import json
 import os
 from typing import Any
@@ -21,19 +31,93 @@ CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoints"
 
 
+CHECKSUM_FILE = "c3dpo_sha256.json"
+
+
+def _file_hashes(step_dir: str) -> dict[str, str]:
+    """``{path relative to step_dir: sha256}`` of every file but the checksum record."""
+    out = {}
+    for folder, _, files in os.walk(step_dir):
+        for name in files:
+            path = os.path.join(folder, name)
+            rel = os.path.relpath(path, step_dir)
+            if rel == CHECKSUM_FILE:
+                continue
+            h = hashlib.sha256()
+            with open(path, "rb") as f:
+                for block in iter(lambda f=f: f.read(1 << 20), b""):
+                    h.update(block)
+            out[rel] = h.hexdigest()
+    return out
+
+
+def _write_checksums(step_dir: str) -> None:
+    hashes, path = _file_hashes(step_dir), os.path.join(step_dir, CHECKSUM_FILE)
+    with open(path + ".tmp", "w") as f:
+        json.dump(hashes, f, indent=0, sort_keys=True)
+    os.replace(path + ".tmp", path)
+
+
+def _checksum_problem(step_dir: str) -> str | None:
+    """What is wrong with ``step_dir``'s files against its record (None: nothing, or
+    no record to check against)."""
+    path = os.path.join(step_dir, CHECKSUM_FILE)
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            recorded = json.load(f)
+    except (OSError, ValueError):
+        return f"its {CHECKSUM_FILE} is unreadable"
+    actual = _file_hashes(step_dir)
+    for rel, digest in sorted(recorded.items()):
+        if rel not in actual:
+            return f"{rel} is missing"
+        if actual[rel] != digest:
+            return f"{rel} fails its sha256 checksum"
+    return None
+
+
+class _Manager(ocp.CheckpointManager):
+    """An orbax manager that records the checksums of the steps it saved once their
+    asynchronous saves have finished (orbax waits for them before each save and on
+    ``wait_until_finished``/``close``)."""
+
+    def __init__(self, *args, **kwargs):
+        self._unsealed: list[int] = []
+        super().__init__(*args, **kwargs)
+
+    def save(self, step: int, *args, **kwargs) -> bool:
+        saved = super().save(step, *args, **kwargs)  # finishes (and seals) earlier saves
+        if saved:
+            self._unsealed.append(step)
+        return saved
+
+    def wait_until_finished(self) -> None:
+        super().wait_until_finished()
+        for step in self._unsealed:
+            step_dir = os.path.join(str(self.directory), str(step))
+            if os.path.isdir(step_dir):  # not yet removed by max_to_keep
+                _write_checksums(step_dir)
+        self._unsealed = []
+
+
 def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.CheckpointManager:
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1), create=True
     )
-    return ocp.CheckpointManager(
-        os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options
-    )
+    return _Manager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options)
 
 
 def _restore(manager: ocp.CheckpointManager, step: int, template):
-    """The state saved at ``step``, or None (with a warning naming it) when it cannot be read
-    or holds non-finite numbers: a half-written or half-deleted directory (a kill during a
-    save or the ``max_to_keep`` clean-up), a truncated, missing or damaged file."""
+    """The state saved at ``step``, or None (with a warning naming it) when its files fail
+    their checksums, cannot be read or hold non-finite numbers: a half-written or
+    half-deleted directory (a kill during a save or the ``max_to_keep`` clean-up), a
+    truncated, missing, damaged or altered file."""
+    problem = _checksum_problem(os.path.join(str(manager.directory), str(step)))
+    if problem is not None:
+        logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
+        return None
     try:
         state = manager.restore(step, args=ocp.args.StandardRestore(template))
     except Exception as err:  # noqa: BLE001 (orbax raises many types for damaged files)

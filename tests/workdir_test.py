@@ -93,6 +93,7 @@ def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_in
     assert checkpoint.load_config(workdir) is None  # nothing recorded for a run that never ran
     result = train.train_and_evaluate(_config(), workdir)  # the suggested K, same workdir
     assert result["final"]["step"] == 10
+    assert os.path.exists(tmp_path / "run" / "checkpoints" / "10" / checkpoint.CHECKSUM_FILE)
     saved = (tmp_path / "run" / "config.json").read_bytes()
     for change in ({"optim.optimizer": "adam"}, {"data.synthetic.seed": 5}):
         with pytest.raises(ValueError, match="holds checkpoints of another run"):
