@@ -62,8 +62,8 @@ class _Problems:
             raise ValueError(
                 f"{label}: {len(msgs)} invalid of {n_entries} entries: "
                 + "; ".join(msgs[:_MAX_LISTED]) + tail
-                + " (fix them, or pass drop_invalid=True / --config.data.drop_invalid=True "
-                "to drop them)"
+                + " (fix them, or drop them: json_dataset.load(..., drop_invalid=True); "
+                "in training, --config.data.drop_invalid=True)"
             )
         logging.warning("%s: dropped %d of %d invalid entries; first: %s",
                         label, len(msgs), n_entries, msgs[0])
