@@ -39,7 +39,7 @@ from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, validation
+from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, tensorboard, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
 from c3dpo_jax.state import (
     OptimConfig,
@@ -261,10 +261,11 @@ def _next_stop(step: int, total: int, intervals) -> int:
 
 class _MetricsWriter:
     """Fetches chunk metrics (one chunk late, so the host never waits on the device),
-    checks them, logs them and appends them to ``metrics.jsonl``."""
+    checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events."""
 
     def __init__(self, workdir: str, pbar):
         self.path = os.path.join(workdir, "metrics.jsonl")
+        self.events = tensorboard.EventWriter(workdir)
         self.pbar, self.pending, self.last_time = pbar, None, time.perf_counter()
 
     def push(self, first_step: int, metrics) -> None:
@@ -289,6 +290,7 @@ class _MetricsWriter:
         self.last_time = now
         with open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
+        self.events.scalars(record["step"], record)
         self.pbar.update(n)
         self.pbar.set_postfix(
             loss=f"{record['loss']:.4f}",
@@ -511,6 +513,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                     logging.info("step %d: test %s", step,
                                  {k: v for k, v in history[-1].items() if k != "per_group"})
                     _write_results(workdir, {"history": history})
+                    writer.events.scalars(step, history[-1], prefix="test/")
                     if hooks.after_evaluation is not None:
                         hooks.after_evaluation(history[-1], state)
                 tic = time.perf_counter()
@@ -533,11 +536,13 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         final = history[-1]
     else:
         final = evaluate(state, step)
+        writer.events.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
     results = {"history": history, "final": final,
                "baselines": baseline_results(train_data, test_data, protocol)}
     _write_results(workdir, results)
+    writer.events.close()
     return results
 
 
