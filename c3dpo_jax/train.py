@@ -23,9 +23,11 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 """
 
 import dataclasses
+import importlib.util
 import json
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -37,7 +39,6 @@ import numpy as np
 import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from tqdm.auto import tqdm
 
 from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, tensorboard, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
@@ -257,6 +258,16 @@ def _next_stop(step: int, total: int, intervals) -> int:
     """The first step after ``step`` that is a multiple of an interval, or ``total``."""
     stops = [total] + [(step // i + 1) * i for i in intervals if i > 0]
     return min(stops)
+
+
+def _progress_bar(**kwargs):
+    """tqdm's widget bar in a notebook that has ipywidgets, else its text bar (importing
+    tqdm.auto would warn "IProgress not found" in every notebook without ipywidgets)."""
+    if "ipykernel" in sys.modules and importlib.util.find_spec("ipywidgets") is not None:
+        from tqdm.auto import tqdm
+    else:
+        from tqdm import tqdm
+    return tqdm(**kwargs)
 
 
 class _MetricsWriter:
@@ -485,7 +496,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     # A resumed run keeps the evaluations made before its checkpoint.
     history = [h for h in _read_results(workdir).get("history", []) if h["step"] <= step]
     train_s = history[-1].get("train_s", 0.0) if history else 0.0
-    pbar = tqdm(total=total, initial=step, unit="step", dynamic_ncols=True,
+    pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
     writer = _MetricsWriter(workdir, pbar)
     tic = time.perf_counter()

@@ -20,6 +20,7 @@ def test_quickstart_notebook_executes_and_displays_images():
     assert len(images) >= 4  # training curves, two test poses, one new pose
     text = "".join(o.get("text", "") for o in outputs if o.output_type == "stream")
     assert "MPJPE on the new poses" in text and "C3DPO" in text
+    assert not [o for o in outputs if o.get("name") == "stderr"], "no warnings, no log lines"
 
 
 def test_notebook_file_is_what_the_generator_writes(tmp_path, monkeypatch):
@@ -32,3 +33,7 @@ def test_notebook_file_is_what_the_generator_writes(tmp_path, monkeypatch):
     fresh = nbformat.v4.new_notebook(cells=gen.CELLS)
     stored = nbformat.read(NOTEBOOK, as_version=4)
     assert [c.source for c in fresh.cells] == [c.source for c in stored.cells]
+    # Committed executed: a reader sees the results and pictures without running it.
+    outputs = [o for c in stored.cells if c.cell_type == "code" for o in c.outputs]
+    assert len([o for o in outputs if "image/png" in o.get("data", {})]) >= 4
+    assert all(c.execution_count for c in stored.cells if c.cell_type == "code")
