@@ -6,7 +6,8 @@ Glossary: B batch, N keypoints, D shape-basis size. Inputs are user coordinates
 
 ``reconstruct`` checks its input on the host (clear one-line ``ValueError`` s, before
 any tracing: shapes, an empty batch, NaN/inf or absurd values at visible points, a
-sample with nothing visible), pads the batch to the next power of two and runs one jitted, vmapped
+sample with nothing visible; a warning when the keypoints' scale is far from the training
+data's), pads the batch to the next power of two and runs one jitted, vmapped
 ``model.forward_eval``: a model compiles once per bucket size (1, 2, 4, ...), not once
 per batch size. Outputs are numpy arrays with the input's leading dimensions.
 """
@@ -19,6 +20,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import logging
 from jax.typing import ArrayLike
 
 from c3dpo_jax import checkpoint, model
@@ -168,6 +170,38 @@ def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> None:
             f"their mean in the model's normalised units (keypoint_rescale "
             f"{cfg.keypoint_rescale:g}; its training data lies within a few units, the limit "
             f"is {MAX_NORMALISED_EXTENT:g}): are the coordinates corrupt or in other units?")
+    _warn_if_other_units(cfg, pts, shown, mean)
+
+
+# A warning when the inputs' scale is further than this factor from the training data's.
+SCALE_WARNING_RATIO = 3.0
+
+
+def _input_scale_ratio(cfg: ModelConfig, pts: np.ndarray, shown: np.ndarray,
+                      mean: np.ndarray) -> float:
+    """The inputs' median RMS radius about their visible mean in the model's normalised
+    units (``keypoint_rescale`` times the input's; calibrated points for perspective
+    models). The training views' is 1: the input scale is set so (``keypoint_rescale=0``)
+    or was fixed by the paper's rule of about that. nan when no sample has two visible
+    points."""
+    count = shown[..., 0].sum(1)
+    sq = (np.where(shown, pts - mean, 0.0) ** 2).sum((1, 2))
+    with np.errstate(invalid="ignore", over="ignore"):
+        radius = np.sqrt(sq[count > 1] / count[count > 1]) * cfg.keypoint_rescale
+    return float(np.median(radius)) if radius.size else float("nan")
+
+
+def _warn_if_other_units(cfg: ModelConfig, pts, shown, mean) -> None:
+    """One warning line when the inputs' scale is beyond ``SCALE_WARNING_RATIO`` times the
+    training data's."""
+    ratio = _input_scale_ratio(cfg, pts, shown, mean)
+    if ratio > SCALE_WARNING_RATIO or ratio < 1 / SCALE_WARNING_RATIO:
+        logging.warning(
+            "kp: the keypoints' spread is %.3gx the training data's (median RMS radius %.3g "
+            "in the model's normalised units, the training views' 1; keypoint_rescale %g): "
+            "keypoints in other units (e.g. pixels for a model trained in metres) give a "
+            "wrong 3D shape; convert them to the training data's units",
+            ratio, ratio, cfg.keypoint_rescale)
 
 
 def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
