@@ -40,6 +40,10 @@ class OptimConfig:
     lr_milestones: tuple[int, ...] = ()  # in epochs
     gamma: float = 0.1
     warmup_steps: int = 0
+    # "multistep": x gamma at each milestone; "cosine": from lr to 0 over cosine_steps steps
+    # (after any warm-up); milestones and gamma are then unused.
+    schedule: str = "multistep"
+    cosine_steps: int = 0
 
     @classmethod
     def from_dict(cls, d) -> "OptimConfig":
@@ -49,9 +53,17 @@ class OptimConfig:
 
 
 def make_schedule(cfg: OptimConfig, steps_per_epoch: int) -> optax.Schedule:
-    """Multistep decay with milestones given in epochs (converted to steps), optional warm-up."""
-    boundaries = {int(m) * steps_per_epoch: cfg.gamma for m in cfg.lr_milestones}
-    schedule = optax.piecewise_constant_schedule(cfg.lr, boundaries)
+    """Multistep decay with milestones given in epochs (converted to steps), or a cosine
+    decay to 0 over ``cosine_steps``; optional linear warm-up before either."""
+    if cfg.schedule == "cosine":
+        if cfg.cosine_steps <= 0:
+            raise ValueError("config.optim.cosine_steps must be > 0 with optim.schedule='cosine'")
+        schedule = optax.cosine_decay_schedule(cfg.lr, cfg.cosine_steps)
+    elif cfg.schedule == "multistep":
+        boundaries = {int(m) * steps_per_epoch: cfg.gamma for m in cfg.lr_milestones}
+        schedule = optax.piecewise_constant_schedule(cfg.lr, boundaries)
+    else:
+        raise ValueError(f"config.optim.schedule={cfg.schedule!r}: 'multistep' or 'cosine'")
     if cfg.warmup_steps > 0:
         warmup = optax.linear_schedule(0.0, cfg.lr, cfg.warmup_steps)
         schedule = optax.join_schedules([warmup, schedule], [cfg.warmup_steps])

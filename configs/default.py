@@ -67,6 +67,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,
         lr_milestones=(), gamma=0.1, warmup_steps=0,
+        schedule="multistep", cosine_steps=0,  # state.OptimConfig
     )
     c.train = dict(
         batch_size=256,
