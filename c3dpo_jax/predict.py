@@ -86,7 +86,8 @@ def read_input(path: str) -> dict[str, np.ndarray]:
         from c3dpo_jax.data.importers import coco_skeleton
 
         out = read_coco(obj)
-        out["style"] = {"y_up": False, "skeleton": coco_skeleton(obj)}
+        style = {"y_up": False, "unit": "px", "skeleton": coco_skeleton(obj)}
+        out["style"] = {k: v for k, v in style.items() if v is not None}
         return out
     from c3dpo_jax.data import json_dataset
 
@@ -97,7 +98,7 @@ def read_input(path: str) -> dict[str, np.ndarray]:
         if value is not None:
             out[name] = value
     if isinstance(obj, dict):
-        out["style"] = {k: obj[k] for k in ("skeleton", "y_up") if obj.get(k) is not None}
+        out["style"] = {k: obj[k] for k in ("skeleton", "y_up", "unit") if obj.get(k) is not None}
     return out
 
 
@@ -121,22 +122,22 @@ def write_output(rec: Reconstruction, index: np.ndarray, path: str) -> None:
 
 
 def picture_style(workdir: str, inputs: dict, skeleton=None, y_up: bool | None = None
-                  ) -> tuple[list[tuple[int, int]], bool]:
-    """(skeleton pairs, y_up) for pictures of ``inputs``: the arguments, else the input
-    file's settings, else the training data's (``visualise.run_style``)."""
+                  ) -> tuple[list[tuple[int, int]], bool, str]:
+    """(skeleton pairs, y_up, unit) for pictures of ``inputs``: the arguments, else the
+    input file's settings, else the training data's (``visualise.run_style``)."""
     from c3dpo_jax import checkpoint, skeletons, visualise
 
     given = {"skeleton": skeleton, "y_up": y_up}
     style = dict(inputs.get("style", {}), **{k: v for k, v in given.items() if v is not None})
-    if not {"skeleton", "y_up"} <= style.keys():
+    if not visualise.STYLE_DEFAULTS.keys() <= style.keys():
         if not os.path.exists(os.path.join(workdir, checkpoint.CONFIG_FILE)):  # a step dir
             workdir = os.path.dirname(os.path.dirname(os.path.abspath(workdir)))
         style = {**visualise.run_style(checkpoint.load_config(workdir) or {}), **style}
     return (skeletons.skeleton(style.get("skeleton"), inputs["kp"].shape[1]),
-            bool(style.get("y_up", False)))
+            bool(style.get("y_up", False)), style.get("unit") or "")
 
 
-def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool) -> None:
+def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool, unit: str) -> None:
     from c3dpo_jax import visualise
 
     os.makedirs(out_dir, exist_ok=True)
@@ -144,7 +145,7 @@ def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool) -> None:
         gt = inputs["kp3d"][i] if "kp3d" in inputs else None
         fig = visualise.plot_reconstruction_3d(
             rec.shape_3d[i], gt, edges, kp=inputs["kp"][i], vis=inputs["vis"][i],
-            title=f"sample {inputs['index'][i]}", y_up=y_up,
+            title=f"sample {inputs['index'][i]}", y_up=y_up, unit=unit,
             kp_reprojected=rec.kp_reprojected[i])
         visualise.save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png"))
 
@@ -157,14 +158,14 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
     params = load(workdir)
     inputs = read_input(input_path)
     if figures:  # a bad --skeleton fails before the work too
-        edges, y_up = picture_style(workdir, inputs, skeleton, y_up)
+        edges, y_up, unit = picture_style(workdir, inputs, skeleton, y_up)
     perspective = params.config.projection_type == "perspective"
     K = inputs.get("K") if perspective else None
     rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"))
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:
-        _figures(rec, inputs, figures, n_figures, edges, y_up)
+        _figures(rec, inputs, figures, n_figures, edges, y_up, unit)
     return rec
 
 

@@ -30,11 +30,14 @@ skeleton = skeletons.skeleton
 
 # Views of a reconstruction: (title, elevation, azimuth from the camera's direction), deg.
 VIEWS = (("camera view", 10, 0), ("side", 10, 90), ("top", 90, 0))
-# Plot defaults of the datasets the package knows (config data.source, or data.name for
-# the release's files): skeleton, and whether y points up.
-_DATASET_STYLES = {"humans": ("h36m", True), "categories": (None, True),
-                   "h36m": ("h36m", False), "h36m_hourglass": ("h36m", False),
-                   "cub_birds": ("cub_birds", False), "cub_birds_hrnet": ("cub_birds", False)}
+# How to draw a dataset: skeleton, whether y points up, the unit of the coordinates.
+STYLE_DEFAULTS = {"skeleton": None, "y_up": False, "unit": ""}
+# ... for the datasets the package knows (config data.source, or data.name for the release's).
+_DATASET_STYLES = {"humans": {"skeleton": "h36m", "y_up": True, "unit": "m"},
+                   "categories": {"y_up": True},
+                   "h36m": {"skeleton": "h36m"}, "h36m_hourglass": {"skeleton": "h36m"},
+                   "cub_birds": {"skeleton": "cub_birds"},
+                   "cub_birds_hrnet": {"skeleton": "cub_birds"}}
 _PRED, _GT = "tab:blue", "0.55"
 
 
@@ -59,7 +62,7 @@ def align_ground_truth(shape, gt) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def plot_keypoints_2d(kp, vis=None, edges=(), ax=None, title: str = "", y_up: bool = False,
-                      kp_hidden=None):
+                      kp_hidden=None, unit: str = ""):
     """Input 2D keypoints with the skeleton; returns the axes.
 
     Visible points are filled. Hidden points have no input position: with ``kp_hidden``
@@ -84,8 +87,9 @@ def plot_keypoints_2d(kp, vis=None, edges=(), ax=None, title: str = "", y_up: bo
     ax.set_aspect("equal", adjustable="datalim")
     if not y_up:
         ax.invert_yaxis()  # image convention: y grows downwards
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
+    suffix = f" [{unit}]" if unit else ""
+    ax.set_xlabel("x" + suffix)
+    ax.set_ylabel("y" + suffix)
     ax.set_title(title or "input 2D keypoints")
     return ax
 
@@ -156,7 +160,7 @@ def plot_reconstruction_3d(shape, gt=None, edges=(), views=VIEWS, kp=None, vis=N
     fig = plt.figure(figsize=(3.8 * panels, 4.2))
     if kp is not None:
         plot_keypoints_2d(kp, vis, edges, ax=fig.add_subplot(1, panels, 1), y_up=y_up,
-                          kp_hidden=kp_reprojected)
+                          kp_hidden=kp_reprojected, unit=unit)
     points = shape if gt is None else np.concatenate([shape, gt])
     for k, (name, elev, azim) in enumerate(views):
         ax = fig.add_subplot(1, panels, k + 1 + (kp is not None), projection="3d")
@@ -226,26 +230,25 @@ def save_figure(fig, path: str) -> str:
 
 
 def data_file_style(path: str) -> dict:
-    """``skeleton`` and ``y_up`` a JSON data file's wrapper names (``{}`` when none)."""
+    """The ``STYLE_DEFAULTS`` keys a JSON data file's wrapper holds (``{}`` when none)."""
     with open(path) as f:
         obj = json.load(f)
     if not isinstance(obj, dict):
         return {}
-    return {k: obj[k] for k in ("skeleton", "y_up") if obj.get(k) is not None}
+    return {k: obj[k] for k in STYLE_DEFAULTS if obj.get(k) is not None}
 
 
 def run_style(config: dict) -> dict:
-    """``skeleton`` and ``y_up`` for a run's pictures, from its ``config.json`` content:
-    what its test (else train) file says, else the built-in dataset's defaults."""
+    """``skeleton``, ``y_up`` and ``unit`` for a run's pictures, from its ``config.json``
+    content: what its test (else train) file says, else the built-in dataset's defaults."""
     data = config.get("data", {})
     for key in ("test_path", "train_path"):
         if data.get(key) and os.path.exists(data[key]):
             style = data_file_style(data[key])
             if style:
-                return style
+                return {**STYLE_DEFAULTS, **style}
     name = data.get("name") if data.get("source") == "release" else data.get("source")
-    edges, y_up = _DATASET_STYLES.get(name or "", (None, False))
-    return {"skeleton": edges, "y_up": y_up}
+    return {**STYLE_DEFAULTS, **_DATASET_STYLES.get(name or "", {})}
 
 
 def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None,
@@ -289,7 +292,7 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None
     for i in range(n):
         gt = None if data.kp3d is None else data.kp3d[i]
         fig = plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=data.kp[i], vis=data.vis[i],
-                                     title=f"sample {i}", y_up=y_up,
+                                     title=f"sample {i}", y_up=y_up, unit=style["unit"],
                                      kp_reprojected=rec.kp_reprojected[i])
         paths.append(save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
     gt = None if data.kp3d is None else data.kp3d[0]

@@ -120,6 +120,8 @@ def test_files_say_how_to_draw_them(tmp_path):
     importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])
     wrapper = json.loads((tmp_path / "o.json").read_text())
     assert wrapper["y_up"] is False and wrapper["skeleton"] == [[0, 1], [1, 2]]
+    assert wrapper["unit"] == "px" and "unit" not in json.loads((tmp_path / "walk_train.json")
+                                                               .read_text())
     assert json_dataset.load(str(tmp_path / "o.json")).n_keypoints == 3
 
 

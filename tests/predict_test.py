@@ -98,17 +98,18 @@ def test_pictures_take_skeleton_and_up_from_flags_else_input_else_training(setup
     _, _, workdir, _ = setup
     kp = np.zeros((1, 17, 2))
     from_file = {"kp": kp, "style": {"skeleton": [[0, 1]], "y_up": True}}
-    assert predict.picture_style(workdir, from_file) == ([(0, 1)], True)
-    assert predict.picture_style(workdir, from_file, "1-2", False) == ([(1, 2)], False)
-    assert predict.picture_style(workdir, {"kp": kp}) == ([], False)  # nothing known
+    assert predict.picture_style(workdir, from_file) == ([(0, 1)], True, "")
+    assert predict.picture_style(workdir, from_file, "1-2", False) == ([(1, 2)], False, "")
+    assert predict.picture_style(workdir, {"kp": kp}) == ([], False, "")  # nothing known
     humans = tmp_path / "humans_run"
     humans.mkdir()
     (humans / "config.json").write_text(json.dumps({"data": {"source": "humans"}}))
-    edges, y_up = predict.picture_style(str(humans), {"kp": kp, "style": {"y_up": False}})
-    assert len(edges) == 16 and y_up is False  # the input's up wins over the training data's
+    edges, y_up, unit = predict.picture_style(str(humans), {"kp": kp, "style": {"y_up": False}})
+    assert len(edges) == 16 and y_up is False and unit == "m"  # the input's up wins
     with pytest.raises(ValueError, match="unknown skeleton 'hand'"):
         predict.picture_style(workdir, {"kp": kp}, "hand")
     coco = tmp_path / "coco.json"
     coco.write_text(json.dumps({"categories": [{"id": 1, "skeleton": [[1, 2]]}],
                                 "annotations": [{"keypoints": [1, 2, 2, 3, 4, 2]}]}))
-    assert predict.read_input(str(coco))["style"] == {"y_up": False, "skeleton": [(0, 1)]}
+    assert predict.read_input(str(coco))["style"] == {"y_up": False, "unit": "px",
+                                                      "skeleton": [(0, 1)]}

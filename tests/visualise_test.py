@@ -106,7 +106,8 @@ def test_reconstruction_figure_shows_error_axes_skeleton_hidden_points_and_up(y_
         hidden = [c for c in _scatters(ax) if len(c.get_offsets()) == 2]
         assert len(hidden) == 1 and np.allclose(hidden[0].get_facecolor()[0], 1.0)
     front, side, top = axes3d
-    assert (front.get_xlabel(), front.get_ylabel()) == ("x [m]", "y [m]")
+    assert (front.get_xlabel(), front.get_ylabel()) == ("x [m]", "y [m]") == (
+        ax2d.get_xlabel(), ax2d.get_ylabel())
     assert side.get_zlabel() == "z (depth) [m]"
     # Views along an axis hide that axis's ticks (the top view's would pile up).
     assert front.get_zlabel() == "" and side.get_xlabel() == "" and top.get_ylabel() == ""
@@ -142,11 +143,12 @@ def test_run_style_from_the_data_file_or_the_built_in_dataset(tmp_path):
     path.write_text(json.dumps({"dataset": "mine", "y_up": True, "skeleton": [[0, 1]],
                                 "data": []}))
     config = {"data": {"source": "json", "test_path": str(path)}}
-    assert visualise.run_style(config) == {"y_up": True, "skeleton": [[0, 1]]}
-    assert visualise.run_style({"data": {"source": "humans"}}) == {"skeleton": "h36m", "y_up": True}
+    assert visualise.run_style(config) == {"y_up": True, "skeleton": [[0, 1]], "unit": ""}
+    assert visualise.run_style({"data": {"source": "humans"}}) == {
+        "skeleton": "h36m", "y_up": True, "unit": "m"}
     assert visualise.run_style({"data": {"source": "release", "name": "h36m"}}) == {
-        "skeleton": "h36m", "y_up": False}
-    assert visualise.run_style({}) == {"skeleton": None, "y_up": False}
+        "skeleton": "h36m", "y_up": False, "unit": ""}
+    assert visualise.run_style({}) == {"skeleton": None, "y_up": False, "unit": ""}
 
 
 def test_write_run_figures_writes_curves_reconstructions_and_a_gif(run, tmp_path):

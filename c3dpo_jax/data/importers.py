@@ -248,10 +248,10 @@ def coco_skeleton(obj: dict, category_id=None) -> list[tuple[int, int]] | None:
     return None
 
 
-def save(data: KeypointData, path: str, *, y_up: bool, skeleton=None) -> None:
-    """``json_dataset.save`` with the picture settings ``y_up`` and ``skeleton`` (pairs,
-    checked against the data's K) in the file's wrapper."""
-    style = {"y_up": bool(y_up)}
+def save(data: KeypointData, path: str, *, y_up: bool, skeleton=None, unit: str = "") -> None:
+    """``json_dataset.save`` with the picture settings ``y_up``, ``skeleton`` (pairs,
+    checked against the data's K) and ``unit`` in the file's wrapper."""
+    style = {"y_up": bool(y_up), **({"unit": unit} if unit else {})}
     if skeleton:
         style["skeleton"] = [list(e) for e in skeletons.skeleton(skeleton, data.n_keypoints)]
     with open(path, "w") as f:
@@ -354,7 +354,7 @@ def main(argv=None) -> None:
         with open(args.path) as f:
             obj = json.load(f)
         data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
-        save(data, args.out, y_up=False,
+        save(data, args.out, y_up=False, unit="px",
              skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
         print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints})")
         return
