@@ -186,3 +186,19 @@ def test_cli_reports_bad_values_in_one_line_and_writes_nothing(tmp_path):
     ):
         assert field in lines[0]
     assert not workdir.exists()
+
+
+def test_schedule_and_ramp_rules():
+    c = default.get_config("smoke")
+    c.optim.schedule = "cosine"
+    c.loss.canonicalization_ramp = (50, 10)
+    c.loss.w_canonicalization_final = 3.0
+    problems = validation.config_problems(c)
+    assert len(problems) == 2
+    assert problems[0].startswith("config.optim.cosine_steps must be >= 1")
+    assert problems[1].startswith("config.loss.canonicalization_ramp=(50, 10)")
+    c.optim.cosine_steps, c.loss.canonicalization_ramp = 100, (10, 50)
+    assert validation.config_problems(c) == []
+    c.optim.schedule = "linear"
+    assert validation.config_problems(c) == [
+        "config.optim.schedule='linear' (must be one of 'multistep', 'cosine')"]
