@@ -16,15 +16,17 @@ camera. Writing B_n = [S_mean,n, V_1n, ..., V_Dn] (3, D + 1) and zh_f = [1, z_f]
   E-step: the Gaussian posterior of z_f given the visible points,
     Cov = sigma^2 (sigma^2 I + A^T A)^-1,  E[z] = (sigma^2 I + A^T A)^-1 A^T r,
     A (2N_f, D) the projected basis G_f V_dn, r the residual w - G_f S_mean - t_f.
-  M-step (each an exact maximiser of the expected complete log-likelihood given the
-  others, so the marginal likelihood never decreases):
+  M-step (conditional steps, each raising or keeping the expected complete log-likelihood
+  given the others, so the marginal likelihood never decreases: a generalised EM):
     shape: per point n, linear least squares for B_n with the moments E[zh], E[zh zh^T];
     camera and translation: the scaled orthographic camera minimising
       tr(G Q G^T) - 2 tr(G P^T), P = sum_n (w_n - w_mean) E[s_n]^T,
       Q = sum_n E[s_n s_n^T] - N_f s_mean s_mean^T (the expected shape's centred moments),
-      found globally by ``baselines.fit_camera`` on six pseudo-points with those moments,
-      started from the current optical axis (so never worse); t_f = w_mean - G_f s_mean;
+      by three of ``baselines.fit_camera``'s steps (which converge to the global optimum)
+      on six pseudo-points with those moments, from the current optical axis (so never
+      worse); then t_f = w_mean - G_f s_mean, the exact optimum given G_f;
     noise: sigma^2 = the expected squared residual per visible coordinate.
+  The shape, translation and noise steps are exact conditional maximisers.
 Initialisation: rigid factorisation (Tomasi-Kanade with missing entries imputed by the
 rank-3 model, metric upgrade), the best camera per view for that shape, and the basis
 from a PCA of the rigid fit's residuals lifted to 3D (plus a small seeded perturbation,
