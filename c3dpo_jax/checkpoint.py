@@ -103,8 +103,11 @@ class _Manager(ocp.CheckpointManager):
 
 
 def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.CheckpointManager:
+    """The training run's manager. It first removes the ``<step>.orbax-checkpoint-tmp``
+    folders that a killed run's uncommitted saves left (orbax never reads them)."""
     options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1), create=True
+        max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1), create=True,
+        cleanup_tmp_directories=True,
     )
     return _Manager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options)
 

@@ -67,3 +67,14 @@ def test_non_finite_values_are_not_restored_and_no_intact_checkpoint_is_an_error
         checkpoint.restore_latest(str(tmp_path), TEMPLATE)
     with pytest.raises(FileNotFoundError, match="no checkpoint found"):
         checkpoint.restore_latest(str(tmp_path / "elsewhere"), TEMPLATE)
+
+
+def test_a_new_run_removes_the_uncommitted_saves_of_a_killed_one(tmp_path):
+    ckpts = _save_three(str(tmp_path))
+    left = os.path.join(ckpts, "7.orbax-checkpoint-tmp")  # a save that never committed
+    os.makedirs(os.path.join(left, "default"))
+    manager = checkpoint.make_manager(str(tmp_path), save_every=1)
+    assert int(checkpoint.restore_or_init(manager, TEMPLATE)["n"]) == 3
+    checkpoint.save(manager, 4, {"w": jnp.asarray(_weights(4)), "n": jnp.int32(4)})
+    manager.close()
+    assert sorted(os.listdir(ckpts)) == ["2", "3", "4"]
