@@ -29,7 +29,7 @@ import numpy as np
 from absl import app, flags
 from ml_collections import config_flags
 
-from c3dpo_jax import model, train
+from c3dpo_jax import inference, model, train
 from c3dpo_jax.state import create_train_state
 
 
@@ -149,8 +149,8 @@ def _time_train(spec: train.RunSpec, data, steps: int,
 
 
 def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str, float]:
-    eval_fn = jax.jit(train.make_eval_fn(model_cfg))
-    idx = np.arange(batch) % data["vis"].shape[0]
+    eval_fn = jax.jit(inference.make_eval_fn(model_cfg))
+    idx = inference.wrap_indices(0, batch, data["vis"].shape[0])
     inputs = jax.device_put({k: v[idx] for k, v in data.items()})
     t0 = time.perf_counter()
     compiled = eval_fn.lower(variables, inputs).compile()

@@ -7,9 +7,10 @@ Glossary: B batch, N keypoints, D shape-basis size. Inputs are user coordinates
 ``reconstruct`` checks its input on the host (clear one-line ``ValueError`` s, before
 any tracing: shapes, an empty batch, NaN/inf or absurd values at visible points, a
 sample with nothing visible; a warning when the keypoints' scale is far from the training
-data's), pads the batch to the next power of two and runs one jitted, vmapped
-``model.forward_eval``: a model compiles once per bucket size (1, 2, 4, ...), not once
-per batch size. Outputs are numpy arrays with the input's leading dimensions.
+data's), pads the batch to the next power of two and runs the one jitted batched
+eval forward (``inference.forward_batch``): a model compiles once per bucket size
+(1, 2, 4, ...), not once per batch size. Outputs are numpy arrays with the input's
+leading dimensions.
 """
 
 import json
@@ -23,7 +24,7 @@ import numpy as np
 from absl import logging
 from jax.typing import ArrayLike
 
-from c3dpo_jax import checkpoint, model
+from c3dpo_jax import checkpoint, inference
 from c3dpo_jax.model import ModelConfig
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer
 
@@ -113,10 +114,6 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
     manager.wait_until_finished()
     manager.close()
     return workdir
-
-
-def _bucket(b: int) -> int:
-    return 1 << max(b - 1, 0).bit_length()
 
 
 # Centred visible points further than this from their mean, in the model's normalised
@@ -240,10 +237,7 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
 
 @jax.jit
 def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
-    def one(kp, vis, cm, K):
-        return model.forward_eval(params.variables, kp, vis, cm, K, params.config)
-
-    out = jax.vmap(one, in_axes=(0, 0, 0, None if K is None else 0))(kp, vis, class_mask, K)
+    out = inference.forward_batch(params.variables, kp, vis, class_mask, K, params.config)
     return Reconstruction(out["shape_image_coord"], out["shape_canonical"], out["rotation"],
                           out["alpha"], out["kp_reprojected"])
 
@@ -272,7 +266,7 @@ def reconstruct(
     if class_mask is None:
         class_mask = np.ones_like(vis)
     b = kp.shape[0]
-    idx = np.arange(_bucket(b)) % b  # pad by repeating valid samples
+    idx = inference.wrap_indices(0, inference.bucket_size(b), b)
     padded = [None if a is None else jnp.asarray(a[idx]) for a in (kp, vis, class_mask, K)]
     out = Reconstruction(*(np.asarray(a[:b]) for a in jax.device_get(
         _reconstruct_batch(params, *padded))))

@@ -42,6 +42,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, tensorboard, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
+from c3dpo_jax.inference import evaluate_split, make_eval_fn, predict_split
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -183,43 +184,10 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
     return chunk
 
 
-def make_eval_fn(model_cfg: model.ModelConfig):
-    """``eval_fn(variables, batch) -> dict of (B, ...)`` eval-mode outputs."""
-
-    def eval_fn(variables, batch):
-        intrinsics = batch.get("intrinsics")
-        fn = partial(model.forward_eval, variables, cfg=model_cfg)
-        return jax.vmap(fn, in_axes=(0, 0, 0, None if intrinsics is None else 0))(
-            batch["kp"], batch["vis"], batch["class_mask"], intrinsics
-        )
-
-    return eval_fn
-
-
-def predict(variables, data: KeypointData, model_cfg, batch_size: int = 1024, eval_fn=None):
-    """Eval-mode outputs for a whole split, in compiled fixed-size batches (numpy out)."""
-    eval_fn = eval_fn or jax.jit(make_eval_fn(model_cfg))
-    inputs = data.model_inputs()
-    m = len(data)
-    batch_size = min(batch_size, m)
-    outputs = []
-    for start in range(0, m, batch_size):
-        idx = np.arange(start, start + batch_size) % m  # pad the tail by wrapping around
-        out = eval_fn(variables, {k: v[idx] for k, v in inputs.items()})
-        outputs.append(jax.device_get(out))
-    return {k: np.concatenate([o[k] for o in outputs])[:m] for k in outputs[0]}
-
-
-def evaluate_split(variables, data, model_cfg, protocol, eval_fn=None, batch_size=1024) -> dict:
-    """Test metrics: MPJPE/stress when the split has 3D ground truth, and always the
-    2D reprojection error of the visible points (the only score for 2D-only data)."""
-    pred = predict(variables, data, model_cfg, batch_size, eval_fn)
-    # kp_reprojected is in the input's units (pixels for perspective models too).
-    reproj = evaluation.reprojection_error(pred["kp_reprojected"], data)
-    out = {"n_samples": len(data), "reprojection": reproj}
-    if data.kp3d is not None and protocol != "none":
-        out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
-    return out
+# The eval path of a split lives in ``inference``; ``make_eval_fn``, ``predict_split`` and
+# ``evaluate_split`` stay importable from here, and ``predict`` is ``predict_split``'s
+# older name (the experiments' scripts use it; it clashed with the ``predict`` module).
+predict = predict_split
 
 
 def baseline_results(train: KeypointData, test: KeypointData, protocol: str) -> dict:

@@ -1,0 +1,82 @@
+"""The one batched eval-mode forward pass, and the padding that keeps its shapes fixed.
+
+Glossary: B batch, N keypoints, M samples of a split.
+
+Every consumer of eval-mode outputs (the training loop's evaluation, ``--mode=eval``,
+``reconstruct``, the benchmark and the experiments) runs ``forward_batch``: the
+per-example ``model.forward_eval`` vmapped over the batch (running BatchNorm
+statistics, so examples do not interact). Batches are padded to a fixed size by
+repeating valid samples (``wrap_indices``), so one compiled function serves every
+batch of that size and the padding rows are real inputs, never NaN-prone zeros.
+"""
+
+from functools import partial
+
+import jax
+import numpy as np
+
+from c3dpo_jax import evaluation, model
+from c3dpo_jax.data.dataset import KeypointData
+
+
+def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics,
+                  cfg: model.ModelConfig):
+    """``model.forward_eval`` over a batch: ``kp (B, N, 2)``, ``vis`` and ``class_mask``
+    ``(B, N)``, ``intrinsics (B, 3, 3)`` or None; returns its outputs with a leading B."""
+    fn = partial(model.forward_eval, variables, cfg=cfg)
+    return jax.vmap(fn, in_axes=(0, 0, 0, None if intrinsics is None else 0))(
+        kp, vis, class_mask, intrinsics
+    )
+
+
+def make_eval_fn(model_cfg: model.ModelConfig):
+    """``eval_fn(variables, batch)``: ``forward_batch`` on a dict of ``model_inputs``."""
+
+    def eval_fn(variables, batch):
+        return forward_batch(variables, batch["kp"], batch["vis"], batch["class_mask"],
+                             batch.get("intrinsics"), model_cfg)
+
+    return eval_fn
+
+
+def wrap_indices(start: int, size: int, m: int) -> np.ndarray:
+    """Rows ``start .. start + size - 1`` of an ``m``-row array, wrapping around past the
+    end: a fixed-size batch whose padding repeats valid samples."""
+    return np.arange(start, start + size) % m
+
+
+def bucket_size(b: int) -> int:
+    """The power of two at or above ``b``: padded batch sizes, so a compiled function
+    serves every batch size up to it."""
+    return 1 << max(b - 1, 0).bit_length()
+
+
+def predict_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
+                  batch_size: int = 1024, eval_fn=None) -> dict[str, np.ndarray]:
+    """Eval-mode outputs for a whole split, ``{name: (M, ...)}`` numpy arrays, computed in
+    compiled batches of ``min(batch_size, M)`` (the last one padded by wrapping around).
+
+    ``eval_fn``: a jitted ``make_eval_fn(model_cfg)`` to reuse (compiled once per loop)."""
+    eval_fn = eval_fn or jax.jit(make_eval_fn(model_cfg))
+    inputs = data.model_inputs()
+    m = len(data)
+    batch_size = min(batch_size, m)
+    outputs = []
+    for start in range(0, m, batch_size):
+        idx = wrap_indices(start, batch_size, m)
+        out = eval_fn(variables, {k: v[idx] for k, v in inputs.items()})
+        outputs.append(jax.device_get(out))
+    return {k: np.concatenate([o[k] for o in outputs])[:m] for k in outputs[0]}
+
+
+def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig, protocol: str,
+                   eval_fn=None, batch_size: int = 1024) -> dict:
+    """Test metrics: MPJPE/stress when the split has 3D ground truth, and always the
+    2D reprojection error of the visible points (the only score for 2D-only data)."""
+    pred = predict_split(variables, data, model_cfg, batch_size, eval_fn)
+    # kp_reprojected is in the input's units (pixels for perspective models too).
+    reproj = evaluation.reprojection_error(pred["kp_reprojected"], data)
+    out = {"n_samples": len(data), "reprojection": reproj}
+    if data.kp3d is not None and protocol != "none":
+        out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
+    return out
