@@ -8,15 +8,13 @@ has ``kp_loc`` (2 x N) and ``kp_vis`` (N,), and optionally ``kp_loc_3d`` (3 x N)
 PASCAL3D+ rule (as in the release): keypoints outside the bbox enlarged by 10% on
 each side are made invisible.
 
-Validation names the entry index and field of every problem: a missing field, a
-ragged list, a keypoint count N that differs from the other entries, NaN/inf (in
-``kp_loc`` at visible points only), a coordinate far outside the file's other points
-(more than ``OUTLIER_FACTOR`` times the file's typical distance of a point from its
-entry's median point, or beyond ``MAX_ABS``: a corrupt value, which float32 squares
-would overflow), visibility not in {0, 1}, and fewer than ``min_visible`` visible
-points. Problems raise one ``ValueError`` line naming the file unless
-``drop_invalid=True``, which drops (and logs) the entries. The coordinates of hidden
-points carry no data: they are stored as 0, whatever the file holds there.
+Validation (``checks``) names the entry index and field of every problem: a missing
+field, a ragged list, a keypoint count N that differs from the other entries, NaN/inf
+(in ``kp_loc`` at visible points only), a coordinate far outside the file's other
+points, visibility not in {0, 1}, and fewer than ``min_visible`` visible points.
+Problems raise one ``ValueError`` line naming the file unless ``drop_invalid=True``,
+which drops (and logs) the entries. The coordinates of hidden points carry no data:
+they are stored as 0, whatever the file holds there.
 
 ``load`` converts a file once and caches the arrays next to it
 (``FILE.json`` -> ``FILE.c3dpo_cache.npz``), keyed by the file's size, mtime, an md5
@@ -24,7 +22,6 @@ of its first and last MiB, the parse options and ``CACHE_VERSION``; a stale or
 unreadable cache is rebuilt, never trusted.
 """
 
-import collections
 import hashlib
 import json
 import os
@@ -33,122 +30,11 @@ import tempfile
 import numpy as np
 from absl import logging
 
+from c3dpo_jax.data import checks
 from c3dpo_jax.data.dataset import KeypointData
 
 CACHE_VERSION = 3
-_MAX_LISTED = 5
-OUTLIER_FACTOR = 1e4
-MAX_ABS = 1e12
 _OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
-
-
-class _Problems:
-    """Per-entry problems, in entry order; the first one per entry is kept."""
-
-    def __init__(self):
-        self.by_entry: dict[int, str] = {}
-
-    def add(self, i, message: str) -> None:
-        self.by_entry.setdefault(int(i), f"entry {int(i)}: {message}")
-
-    def raise_or_drop(self, n_entries: int, drop_invalid: bool, label: str) -> np.ndarray:
-        """Indices of the entries to keep (raises unless ``drop_invalid``)."""
-        if not self.by_entry:
-            return np.arange(n_entries)
-        msgs = [self.by_entry[i] for i in sorted(self.by_entry)]
-        if not drop_invalid:
-            more = len(msgs) - _MAX_LISTED
-            tail = f"; ... and {more} more" if more > 0 else ""
-            raise ValueError(
-                f"{label}: {len(msgs)} invalid of {n_entries} entries: "
-                + "; ".join(msgs[:_MAX_LISTED]) + tail
-                + " (fix them, or drop them: json_dataset.load(..., drop_invalid=True); "
-                "in training, --config.data.drop_invalid=True)"
-            )
-        logging.warning("%s: dropped %d of %d invalid entries; first: %s",
-                        label, len(msgs), n_entries, msgs[0])
-        keep = np.ones(n_entries, bool)
-        keep[sorted(self.by_entry)] = False
-        return np.flatnonzero(keep)
-
-
-def _stack(entries, field: str, shape: tuple, problems: _Problems) -> np.ndarray:
-    """(M, *shape) float32; ragged, non-numeric or misshaped entries become problems (NaN)."""
-    try:  # Fast path: one conversion for the whole file.
-        arr = np.asarray([e[field] for e in entries], dtype=np.float32)
-        if arr.shape[1:] == shape:
-            return arr
-    except (ValueError, TypeError):
-        pass
-    out = np.full((len(entries), *shape), np.nan, np.float32)
-    for i, e in enumerate(entries):
-        try:
-            value = np.asarray(e[field], dtype=np.float32)
-        except (ValueError, TypeError):
-            problems.add(i, f"field {field!r} is a ragged or non-numeric list")
-            continue
-        if value.shape != shape:
-            problems.add(i, f"field {field!r} has shape {value.shape}, expected {shape}")
-            continue
-        out[i] = value
-    return out
-
-
-def _check_finite(i_bad: np.ndarray, field: str, problems: _Problems) -> None:
-    for i in i_bad:
-        problems.add(i, f"field {field!r} contains NaN or inf")
-
-
-def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Median over axis 1 of ``x (M, N, ...)`` where ``mask (M, N)``; NaN for none."""
-    m = mask.reshape(mask.shape + (1,) * (x.ndim - 2))
-    srt = np.sort(np.where(m, x, np.inf), axis=1)  # selected values first
-    count = np.broadcast_to(m.sum(1, keepdims=True), srt[:, :1].shape)
-    lo = np.take_along_axis(srt, np.maximum(count - 1, 0) // 2, axis=1)
-    hi = np.take_along_axis(srt, count // 2, axis=1)  # count < N unless all are selected
-    with np.errstate(invalid="ignore"):
-        return np.where(count > 0, (lo + hi) / 2, np.nan)[:, 0]
-
-
-def _check_magnitude(points: np.ndarray, mask: np.ndarray, field: str, what: str,
-                     problems: _Problems) -> None:
-    """Coordinates of ``points (M, N, C)`` at ``mask (M, N)`` that lie more than
-    ``OUTLIER_FACTOR`` times the file's typical point-to-median distance from their
-    entry's median point (coordinate-wise), or beyond ``MAX_ABS``, are problems."""
-    mask = mask & np.isfinite(points).all(-1)
-    pts = points.astype(np.float64)
-    with np.errstate(invalid="ignore", over="ignore"):
-        dist = np.abs(pts - _masked_median(pts, mask)[:, None]).max(-1)
-        typical = _masked_median(dist, mask)
-    typical = typical[np.isfinite(typical) & (typical > 0)]
-    scale = float(np.median(typical)) if typical.size else np.inf
-    bad = mask & ((np.abs(pts).max(-1) > MAX_ABS) | (dist > OUTLIER_FACTOR * scale))
-    if not bad.any():
-        return
-    # Named per entry: the flagged point farthest from the file's median point (with two
-    # visible points both lie far from their entry's median).
-    centre = np.median(pts[mask], axis=0)
-    with np.errstate(invalid="ignore", over="ignore"):
-        far = np.where(bad, np.abs(pts - centre).max(-1), -1.0)
-    for i in np.flatnonzero(bad.any(1)):
-        k = int(np.argmax(far[i]))
-        value = pts[i, k][np.argmax(np.abs(pts[i, k]))]
-        problems.add(i, f"field {field!r} has {value:.3g} at {what} {k}, far outside the "
-                        f"file's other points (typical distance from an entry's median point: "
-                        f"{scale:.3g}; limit {OUTLIER_FACTOR:g} times that or {MAX_ABS:g})")
-
-
-def _n_keypoints(entries, problems: _Problems) -> int:
-    """The most common length of ``kp_vis``; entries with another length are problems."""
-    lengths = [len(e["kp_vis"]) if isinstance(e.get("kp_vis"), list) else -1 for e in entries]
-    n = collections.Counter(x for x in lengths if x >= 0).most_common(1)
-    n = n[0][0] if n else 0
-    for i, length in enumerate(lengths):
-        if length != n:
-            what = "is not a list" if length < 0 else f"has {length} keypoints"
-            problems.add(i, f"field 'kp_vis' {what} but the dataset has {n} keypoints "
-                            "(K must be the same in every entry)")
-    return n
 
 
 def _bbox_visibility(kp: np.ndarray, bboxes: np.ndarray) -> np.ndarray:
@@ -178,17 +64,7 @@ def _unwrap(obj, name: str, source: str):
     return obj, name
 
 
-def _check_required(entries, problems: _Problems) -> None:
-    for i, e in enumerate(entries):
-        if not isinstance(e, dict):
-            problems.add(i, f"is a {type(e).__name__}, not an object with 'kp_loc' and 'kp_vis'")
-            continue
-        for field in ("kp_loc", "kp_vis"):
-            if field not in e:
-                problems.add(i, f"required field {field!r} is missing")
-
-
-def _optional_fields(entries, n: int, problems: _Problems) -> dict:
+def _optional_fields(entries, n: int, problems: checks.Problems) -> dict:
     out = {}
     specs = [(f, (rows, n) if rows else (n,), t) for f, rows, t in _OPTIONAL]
     specs.append(("K", (3, 3), False))
@@ -199,13 +75,13 @@ def _optional_fields(entries, n: int, problems: _Problems) -> dict:
         for i in np.flatnonzero(~np.asarray(present)):
             problems.add(i, f"field {field!r} is missing (other entries have it)")
         filled = [e if field in e else {field: np.zeros(shape).tolist()} for e in entries]
-        value = _stack(filled, field, shape, problems)
-        _check_finite(np.flatnonzero(~np.isfinite(value).reshape(len(value), -1).all(1)),
-                      field, problems)
+        value = checks.stack(filled, field, shape, problems)
+        checks.check_finite(np.flatnonzero(~np.isfinite(value).reshape(len(value), -1).all(1)),
+                            field, problems)
         out[field] = np.swapaxes(value, 1, 2) if transpose else value
     if "kp_loc_3d" in out:  # every point counts in the evaluation unless kp_defined says not
         defined = out.get("kp_defined", np.ones(out["kp_loc_3d"].shape[:2])) > 0
-        _check_magnitude(out["kp_loc_3d"], defined, "kp_loc_3d", "point", problems)
+        checks.check_magnitude(out["kp_loc_3d"], defined, "kp_loc_3d", "point", problems)
     return out
 
 
@@ -241,23 +117,14 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     """
     entries, name = _unwrap(obj, name, source)
     label = source or f"dataset {name!r}"
-    problems = _Problems()
-    _check_required(entries, problems)
+    problems = checks.Problems()
+    checks.check_required(entries, problems)
     ok = [e if i not in problems.by_entry else {"kp_loc": [[]], "kp_vis": []}
           for i, e in enumerate(entries)]
-    n = _n_keypoints(ok, problems)
-    kp = np.swapaxes(_stack(ok, "kp_loc", (2, n), problems), 1, 2)
-    vis = _stack(ok, "kp_vis", (n,), problems)
-    for i, k in zip(*np.nonzero((vis != 0) & ~np.isfinite(kp).all(-1)), strict=True):
-        problems.add(i, f"field 'kp_loc' contains NaN or inf at visible point {k}")
-    _check_magnitude(kp, vis == 1, "kp_loc", "visible point", problems)
-    bad_vis = ~((vis == 0) | (vis == 1) | np.isnan(vis))
-    for i, k in zip(*np.nonzero(bad_vis), strict=True):
-        problems.add(i, f"field 'kp_vis' has value {vis[i, k]:g} at point {k} (must be 0 or 1)")
-    counts = np.nansum(vis, axis=1)
-    for i in np.flatnonzero(counts < min_visible):
-        problems.add(i, f"field 'kp_vis' has {int(counts[i])} visible points, fewer than "
-                        f"min_visible={min_visible}")
+    n = checks.n_keypoints(ok, problems)
+    kp = np.swapaxes(checks.stack(ok, "kp_loc", (2, n), problems), 1, 2)
+    vis = checks.stack(ok, "kp_vis", (n,), problems)
+    checks.check_keypoints(kp, vis, min_visible, problems)
     fields = _optional_fields(ok, n, problems)
     fields.update(_info_fields(ok))
     keep = problems.raise_or_drop(len(entries), drop_invalid, label)
