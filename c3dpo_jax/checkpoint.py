@@ -3,7 +3,8 @@
 Layout of a workdir::
 
     workdir/config.json          the resolved config (model settings for ``load``)
-    workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree, and
+    workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree (or of the
+                                 variables alone: ``save_variables``), and
                                  c3dpo_sha256.json: the sha256 of each of its files
     workdir/metrics.jsonl        one JSON line per logged chunk of steps
     workdir/eval_results.json    evaluation history, final metrics and baselines
@@ -112,17 +113,30 @@ def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.Che
     return _Manager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)), options=options)
 
 
-def _restore(manager: ocp.CheckpointManager, step: int, template):
-    """The state saved at ``step``, or None (with a warning naming it) when its files fail
-    their checksums, cannot be read or hold non-finite numbers: a half-written or
-    half-deleted directory (a kill during a save or the ``max_to_keep`` clean-up), a
-    truncated, missing, damaged or altered file."""
+def _restore_args(template, subtree: bool) -> ocp.args.CheckpointArgs:
+    """Orbax's restore arguments: the whole saved tree onto ``template``, or with
+    ``subtree`` only the entries ``template`` names (e.g. ``params`` and ``batch_stats``
+    of a saved TrainState, without its optimiser state), onto the default device."""
+    if not subtree:
+        return ocp.args.StandardRestore(template)
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    restore_args = jax.tree.map(lambda _: ocp.ArrayRestoreArgs(sharding=device), template)
+    return ocp.args.PyTreeRestore(item=template, restore_args=restore_args,
+                                  partial_restore=True)
+
+
+def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool = False):
+    """The state saved at ``step`` (``_restore_args``), or None (with a warning naming it)
+    when its files fail their checksums, cannot be read or hold non-finite numbers: a
+    half-written or half-deleted directory (a kill during a save or the ``max_to_keep``
+    clean-up), a truncated, missing, damaged or altered file. The checksums cover every
+    file of the step, also when only a subtree is read."""
     problem = _checksum_problem(os.path.join(str(manager.directory), str(step)))
     if problem is not None:
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
         return None
     try:
-        state = manager.restore(step, args=ocp.args.StandardRestore(template))
+        state = manager.restore(step, args=_restore_args(template, subtree))
     except Exception as err:  # noqa: BLE001 (orbax raises many types for damaged files)
         problem = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
@@ -134,13 +148,13 @@ def _restore(manager: ocp.CheckpointManager, step: int, template):
     return state
 
 
-def _restore_newest(manager: ocp.CheckpointManager, template):
+def _restore_newest(manager: ocp.CheckpointManager, template, subtree: bool = False):
     """``(state, step)`` of the newest checkpoint that restores intact (broken ones are
     skipped with a warning); ``(None, None)`` when there is none at all. Raises when
     checkpoints exist but none can be read."""
     steps = sorted(manager.all_steps(), reverse=True)
     for step in steps:
-        state = _restore(manager, step, template)
+        state = _restore(manager, step, template, subtree)
         if state is not None:
             if step != steps[0]:
                 logging.warning("resuming from checkpoint %d, the newest intact one", step)
@@ -229,20 +243,43 @@ def load_config(workdir: str) -> dict[str, Any] | None:
         return json.load(f)
 
 
-def restore_latest(workdir: str, template, step: int | None = None):
+def restore_latest(workdir: str, template, step: int | None = None, subtree: bool = False):
     """Restores ``template``-shaped state from ``workdir``: ``step``, or by default the newest
-    checkpoint that reads back intact."""
+    checkpoint that reads back intact. With ``subtree``, only the entries that ``template``
+    names are read (``restore_variables``)."""
     manager = ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)))
     try:
         if step is None:
-            state, step = _restore_newest(manager, template)
+            state, step = _restore_newest(manager, template, subtree)
             if state is None:
                 raise FileNotFoundError(f"no checkpoint found under {workdir}/{CHECKPOINT_DIR}")
         else:
-            state = _restore(manager, step, template)
+            state = _restore(manager, step, template, subtree)
             if state is None:
                 raise ValueError(f"checkpoint {step} under {workdir}/{CHECKPOINT_DIR} cannot be "
                                  "read (see the warning above)")
     finally:
         manager.close()
     return state, step
+
+
+def restore_variables(workdir: str, template: dict[str, Any], step: int | None = None):
+    """``(variables, step)``: the ``{"params", "batch_stats"}`` of a checkpoint, whether it
+    holds a whole TrainState (a training run) or the variables alone (``save_variables``),
+    shaped like ``template`` (e.g. ``jax.eval_shape`` of ``model.init_variables``). No
+    optimiser is built and its state is not read: inference needs neither."""
+    template = {"params": template["params"], "batch_stats": template["batch_stats"]}
+    return restore_latest(workdir, template, step, subtree=True)
+
+
+def save_variables(workdir: str, variables: dict[str, Any], step: int = 0) -> None:
+    """Writes ``variables`` (``{"params", "batch_stats"}``) as the checkpoint ``step`` of
+    ``workdir``, with its checksums: a workdir that ``restore_variables`` (``load``,
+    ``--mode=eval``) reads. It holds no optimiser state, so training cannot resume it."""
+    manager = make_manager(workdir, save_every=1)
+    try:
+        variables = {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+        save(manager, step, variables, force=True)
+        manager.wait_until_finished()
+    finally:
+        manager.close()

@@ -117,6 +117,12 @@ def init_variables(key: jax.Array, cfg: ModelConfig) -> Variables:
     return dict(net.init(key, jnp.zeros((n, 2)), jnp.ones((n,)), False))
 
 
+def variables_shape(cfg: ModelConfig) -> Variables:
+    """``init_variables``' pytree as ``jax.ShapeDtypeStruct`` leaves, computing nothing:
+    the template a checkpoint's variables are restored onto."""
+    return jax.eval_shape(lambda k: init_variables(k, cfg), jax.random.key(0))
+
+
 def _camera(cfg: ModelConfig, phi_out, x_canon):
     """Camera-frame shape ``s R X + T`` and the rotation."""
     rot = so3.exp_map(phi_out["theta"])

@@ -24,9 +24,8 @@ import numpy as np
 from absl import logging
 from jax.typing import ArrayLike
 
-from c3dpo_jax import checkpoint, inference
+from c3dpo_jax import checkpoint, inference, model
 from c3dpo_jax.model import ModelConfig
-from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer
 
 
 @flax.struct.dataclass
@@ -55,12 +54,6 @@ class Reconstruction(NamedTuple):
     kp_reprojected: np.ndarray
 
 
-def _template(model_cfg: ModelConfig, optim: dict | None):
-    """The TrainState pytree (shapes only) that a workdir's checkpoints hold."""
-    tx = make_optimizer(OptimConfig.from_dict(optim or {}), steps_per_epoch=1)
-    return jax.eval_shape(lambda k: create_train_state(k, model_cfg, tx), jax.random.key(0))
-
-
 def _split_path(path: str) -> tuple[str, int | None]:
     """``workdir`` or ``workdir/checkpoints/<step>`` -> (workdir, step or None)."""
     path = os.path.abspath(os.path.expanduser(path))
@@ -83,20 +76,20 @@ def load(path: str) -> C3DPOParams:
     if config is None or "model" not in config:
         raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")
     model_cfg = ModelConfig.from_dict(config["model"])
-    state, _ = checkpoint.restore_latest(workdir, _template(model_cfg, config.get("optim")), step)
-    return C3DPOParams(variables=state.variables, config=model_cfg)
+    variables, _ = checkpoint.restore_variables(workdir, model.variables_shape(model_cfg), step)
+    return C3DPOParams(variables=variables, config=model_cfg)
 
 
 def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = None) -> str:
-    """Writes ``params`` as a normal c3dpo_jax workdir (config.json + orbax checkpoint).
+    """Writes ``params`` as a c3dpo_jax workdir (config.json + an orbax checkpoint of the
+    variables) that ``load``, ``predict`` and ``--mode=eval`` read. It holds no optimiser
+    state: it is a model to use, not a run to resume.
 
     Args:
       params: the model.
       workdir: directory to create.
       config_dict: a full resolved config (e.g. ``get_config().to_dict()``); its
-        ``model`` section is replaced by ``params.config``. Its ``optim`` section picks
-        the (fresh) optimiser state saved alongside, so that ``--mode=eval`` with the
-        same config restores it.
+        ``model`` section is replaced by ``params.config``.
 
     Returns:
       The workdir.
@@ -105,14 +98,7 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
     config["model"] = params.config.to_dict()
     os.makedirs(workdir, exist_ok=True)
     checkpoint.save_config(workdir, config)
-    tx = make_optimizer(OptimConfig.from_dict(config.get("optim", {})), steps_per_epoch=1)
-    state = create_train_state(jax.random.key(0), params.config, tx)
-    state = state.replace(params=params.variables["params"],
-                          batch_stats=params.variables["batch_stats"])
-    manager = checkpoint.make_manager(workdir, save_every=1)
-    checkpoint.save(manager, 0, state, force=True)
-    manager.wait_until_finished()
-    manager.close()
+    checkpoint.save_variables(workdir, params.variables)
     return workdir
 
 

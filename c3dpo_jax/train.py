@@ -534,10 +534,9 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     config = resolve_input_scale(config, train_data, checkpoint.load_config(workdir))
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
-    template = create_train_state(jax.random.key(0), model_cfg, spec.optimizer())
-    state, step = checkpoint.restore_latest(workdir, template)
+    variables, step = checkpoint.restore_variables(workdir, model.variables_shape(model_cfg))
     _check_data(test_data, model_cfg, "test")
-    final = evaluate_split(state.variables, test_data, model_cfg, config.data.protocol,
+    final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     results = dict(_read_results(workdir), final=dict(step=step, **final),
                    baselines=baseline_results(train_data, test_data, config.data.protocol))

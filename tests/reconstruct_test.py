@@ -2,14 +2,16 @@
 
 import dataclasses
 import os
+import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import c3dpo_jax
-from c3dpo_jax import model
+from c3dpo_jax import checkpoint, model
 from c3dpo_jax.reconstruct import (
     C3DPOParams,
     Reconstruction,
@@ -134,6 +136,36 @@ def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_
         assert all(jax.tree.leaves(same))
     with pytest.raises(FileNotFoundError, match="neither a workdir"):
         load(str(tmp_path))
+
+
+def _same(a, b) -> bool:
+    return all(jax.tree.leaves(jax.tree.map(
+        lambda x, y: np.array_equal(np.asarray(x), np.asarray(y)), a, b)))
+
+
+def test_load_reads_a_training_checkpoint_without_an_optimiser(params, tmp_path):
+    """A training run's checkpoint holds a TrainState with optimiser state; load reads only
+    its params and batch_stats (no optimiser is built: the config names none, and the
+    saved state is Adam's), and still proves each step against its checksums."""
+    from c3dpo_jax.state import TrainState
+
+    workdir = str(tmp_path / "run")
+    tx, manager = optax.adam(1e-3), checkpoint.make_manager(workdir, save_every=1)
+    scaled = {step: jax.tree.map(lambda a, s=step: a * s, params.variables) for step in (1, 2)}
+    for step, v in scaled.items():
+        state = TrainState(jnp.int32(step), v["params"], v["batch_stats"], tx.init(v["params"]))
+        checkpoint.save(manager, step, state, force=True)
+    manager.wait_until_finished()
+    manager.close()
+    checkpoint.save_config(workdir, {"model": CFG.to_dict()})
+    assert _same(load(workdir).variables, scaled[2])
+    step_dir = os.path.join(workdir, checkpoint.CHECKPOINT_DIR, "2")
+    files = [os.path.join(d, f) for d, _, fs in os.walk(step_dir) for f in fs]
+    biggest = pathlib.Path(max(files, key=os.path.getsize))
+    data = bytearray(biggest.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    biggest.write_bytes(bytes(data))
+    assert _same(load(workdir).variables, scaled[1])  # the damaged step 2 is skipped
 
 
 def test_package_exports_the_public_api():
