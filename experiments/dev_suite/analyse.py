@@ -1,0 +1,126 @@
+"""What bounds the suite's errors: references computed from the 3D truth, and errors per clip.
+
+  python experiments/dev_suite/analyse.py floors               # every dataset with views
+  python experiments/dev_suite/analyse.py clips --run=results/runs/default/deepmimic__s0
+
+``floors``: for each dataset whose views ``suite.py`` has made, on the test views, with the
+3D truth C3DPO never sees: the training split's Procrustes mean shape under the oracle
+rotation of each test shape, and the best fit of a D-dimensional PCA basis of the aligned
+training shapes (D = 10, C3DPO's default basis size) under its oracle rotation: what a
+rigid model and a linear model of that size could reach with a perfect camera (mean distance
+per point, units of the normalised sequence; humans: metres). Also the mean 2D distance of
+the best rigid fit of the mean shape (the rigid baseline) to the test views, beside which a
+model's ``reprojection`` score tells whether it fits the 2D points better than a rigid shape.
+
+``clips``: a trained run of a motion-capture dataset with clips (deepmimic, cmu131), test
+MPJPE of the model and of the rigid baseline per clip.
+"""
+
+import os
+import sys
+
+import numpy as np
+from absl import app, flags
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
+
+import suite  # noqa: E402
+
+import c3dpo_jax  # noqa: E402
+from c3dpo_jax import baselines, evaluation  # noqa: E402
+from c3dpo_jax.data import importers, json_dataset  # noqa: E402
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's results/runs/...)")
+flags.DEFINE_integer("n_basis", 10, "floors: size of the PCA basis")
+
+
+def _rotate_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Each shape of ``x`` (M, N, 3) under the rotation (no reflection) closest to ``ref``
+    (M, N, 3) or (N, 3) (orthogonal Procrustes)."""
+    ref = np.broadcast_to(ref, x.shape)
+    u, _, vt = np.linalg.svd(np.einsum("mni,mnj->mij", x, ref))
+    d = np.sign(np.linalg.det(u @ vt))
+    u[:, :, 2] *= d[:, None]
+    return np.einsum("mni,mij->mnj", x, u @ vt)
+
+
+def _centred(x) -> np.ndarray:
+    x = np.asarray(x, np.float64)
+    return x - x.mean(1, keepdims=True)
+
+
+def floors(name: str, data_dir: str, n_basis: int) -> dict:
+    train = json_dataset.load(os.path.join(data_dir, f"{name}_train.json"))
+    test = json_dataset.load(os.path.join(data_dir, f"{name}_test.json"))
+    mean = _centred(baselines.procrustes_mean_shape(train.kp3d)[None])[0]
+    aligned = _rotate_onto(_centred(train.kp3d), mean).reshape(len(train), -1)
+    mu = aligned.mean(0)
+    basis = np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
+    truth = _centred(test.kp3d)
+
+    def oracle_fit(n_iters: int) -> float:
+        x = _rotate_onto(truth, mean)
+        for _ in range(n_iters + 1):  # alternate: best shape in the span, best rotation
+            fit = ((x.reshape(len(x), -1) - mu) @ basis.T @ basis + mu).reshape(x.shape)
+            x = _rotate_onto(x, fit)
+        return float(np.linalg.norm(fit - x, axis=-1).mean())
+
+    rigid = np.linalg.norm(_rotate_onto(truth, mean) - mean, axis=-1).mean()
+    scale, rows, centred, kp_mean = baselines.fit_camera(mean, test.kp, test.vis)
+    dist = np.linalg.norm(baselines.project(scale, rows, centred, kp_mean) - test.kp, axis=-1)
+    return {"rigid mean shape, oracle rotation": float(rigid),
+            f"PCA basis D={n_basis}, oracle fit": oracle_fit(5),
+            "rigid baseline, mean 2D distance": float((dist * test.vis).sum() / test.vis.sum())}
+
+
+def per_clip(run: str) -> list[tuple[str, int, float, float]]:
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    if dataset not in suite.MOCAP:
+        raise app.UsageError(f"{run}: clips needs a run of one of {sorted(suite.MOCAP)}")
+    info = suite.make_data(dataset, FLAGS.data_root, FLAGS.out)
+    path = os.path.join(FLAGS.data_root, "mocap", f"{dataset.removesuffix('_clips')}.npz")
+    clip = importers.load_clips(path)
+    with np.load(path) as z:
+        names = [str(n) for n in z["clip_names"]]
+    test_frames = importers.clip_split(clip, 0.2, 5, 0, suite.MOCAP[dataset])
+    view_clip = np.repeat(clip[test_frames], 3)  # the importer's views are frame-major
+    train = json_dataset.load(info["train"])
+    test = json_dataset.load(info["test"])
+    if len(view_clip) != len(test):
+        raise app.UsageError(f"{run}: the test views do not match {path}'s clips")
+    model = c3dpo_jax.load(run)
+    pred = c3dpo_jax.reconstruct(model, test.kp, test.vis).shape_3d
+    rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
+                                     test.vis)
+    rows = []
+    for c in np.unique(view_clip):
+        idx = np.flatnonzero(view_clip == c)
+        sub = test.subset(idx)
+        rows.append((names[c], len(idx), evaluation.evaluate(pred[idx], sub)["mpjpe"],
+                     evaluation.evaluate(rigid[idx], sub)["mpjpe"]))
+    return rows
+
+
+def main(argv):
+    if len(argv) != 2 or argv[1] not in ("floors", "clips"):
+        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR")
+    if argv[1] == "floors":
+        data_dir = os.path.join(FLAGS.out, "data")
+        print(f"| dataset | rigid mean shape, oracle rotation | PCA D={FLAGS.n_basis}, oracle "
+              "fit | rigid baseline's mean 2D distance |\n|---|---|---|---|")
+        for name in suite.DATASETS:
+            if os.path.exists(os.path.join(data_dir, f"{name}_test.json")):
+                f = list(floors(name, data_dir, FLAGS.n_basis).values())
+                print(f"| {name} | {f[0]:.4f} | {f[1]:.4f} | {f[2]:.4f} |")
+        return
+    if not FLAGS.run:
+        raise app.UsageError("clips needs --run=RUN_DIR")
+    print("| clip | test views | model | rigid baseline |\n|---|---|---|---|")
+    for name, n, model, rigid in per_clip(FLAGS.run):
+        print(f"| {name} | {n} | {model:.3f} | {rigid:.3f} |")
+
+
+if __name__ == "__main__":
+    app.run(main)
