@@ -20,9 +20,10 @@ from c3dpo_jax.data.dataset import KeypointData
 
 
 def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics,
-                  cfg: model.ModelConfig):
+                  cfg: model.ModelConfig) -> model.Prediction:
     """``model.forward_eval`` over a batch: ``kp (B, N, 2)``, ``vis`` and ``class_mask``
-    ``(B, N)``, ``intrinsics (B, 3, 3)`` or None; returns its outputs with a leading B."""
+    ``(B, N)``, ``intrinsics (B, 3, 3)`` or None; returns its ``Prediction`` with a
+    leading B on every field."""
     fn = partial(model.forward_eval, variables, cfg=cfg)
     return jax.vmap(fn, in_axes=(0, 0, 0, None if intrinsics is None else 0))(
         kp, vis, class_mask, intrinsics
@@ -53,8 +54,9 @@ def bucket_size(b: int) -> int:
 
 def predict_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
                   batch_size: int = 1024, eval_fn=None) -> dict[str, np.ndarray]:
-    """Eval-mode outputs for a whole split, ``{name: (M, ...)}`` numpy arrays, computed in
-    compiled batches of ``min(batch_size, M)`` (the last one padded by wrapping around).
+    """Eval-mode outputs for a whole split, a dict ``{field of model.Prediction: (M, ...)}``
+    of numpy arrays, computed in compiled batches of ``min(batch_size, M)`` (the last one
+    padded by wrapping around).
 
     ``eval_fn``: a jitted ``make_eval_fn(model_cfg)`` to reuse (compiled once per loop)."""
     eval_fn = eval_fn or jax.jit(make_eval_fn(model_cfg))

@@ -11,8 +11,10 @@ l2), in-plane equivariance (eq. 6, l3).
 
 import contextlib
 import dataclasses
+from collections.abc import Mapping
 from typing import Any
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -23,6 +25,66 @@ from c3dpo_jax.networks import C3DPONet
 from c3dpo_jax.types import Kp2, Vis
 
 Variables = dict[str, Any]
+# A pytree leaf: a jax.Array, numpy after ``device_get``, a ShapeDtypeStruct under
+# ``eval_shape`` (so a field's annotation cannot be ``Array``; shapes are in docstrings).
+Leaf = Any
+
+
+@flax.struct.dataclass
+class Prediction(Mapping):
+    """``forward_eval``'s outputs for one example (under ``vmap``, each with a leading B).
+
+    A frozen dataclass and a pytree (``vmap``, ``jit`` and ``device_get`` keep the type),
+    and a read-only mapping from field name to array, so ``pred.alpha``,
+    ``pred["alpha"]``, ``pred.items()`` and ``dict(pred)`` all work (the mapping view is
+    the dict this type replaced). "Normalised" is the network's frame: the input
+    centred (``kp_mean``) and times ``keypoint_rescale``, after calibration with K for
+    perspective models.
+
+    Attributes:
+      shape_image_coord: (N, 3) the 3D output in the input's coordinates: xy the input
+        where visible (``replace_keypoints_with_input``) else the reprojection, depth
+        divided by ``keypoint_rescale`` (calibrated units for perspective models).
+      shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised.
+      shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
+      rotation: (3, 3) the camera rotation R = exp_map(theta).
+      theta: (3,) R's axis-angle vector.
+      alpha: (D,) shape-basis coefficients.
+      translation: (3,) camera translation (zeros + ``depth_offset`` unless predicted).
+      scale: () camera scale (1 unless ``camera_scale``).
+      kp_reprojected: (N, 2) shape_camera projected back to input coordinates (pixels
+        for perspective models).
+      kp_norm: (N, 2) the network's normalised input.
+      kp_mean: (2,) the centre removed from the input (calibrated for perspective).
+      repro: (N,) pseudo-Huber reprojection error of each point, normalised, unmasked.
+    """
+
+    shape_image_coord: Leaf
+    shape_camera: Leaf
+    shape_canonical: Leaf
+    rotation: Leaf
+    theta: Leaf
+    alpha: Leaf
+    translation: Leaf
+    scale: Leaf
+    kp_reprojected: Leaf
+    kp_norm: Leaf
+    kp_mean: Leaf
+    repro: Leaf
+
+    def __getitem__(self, name: str) -> Leaf:
+        if name not in _PREDICTION_FIELDS:
+            raise KeyError(name)
+        return getattr(self, name)
+
+    def __iter__(self):
+        return iter(_PREDICTION_FIELDS)
+
+    def __len__(self) -> int:
+        return len(_PREDICTION_FIELDS)
+
+
+_PREDICTION_FIELDS = tuple(f.name for f in dataclasses.fields(Prediction))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,9 +282,10 @@ def _forward_train(
             out1, stats = phi(copies[0], stats)
             out2, stats = phi(copies[1], stats)
         else:
-            outs, st = jax.vmap(phi, in_axes=(0, None), axis_name="copy")(copies, stats)
+            # BatchNorm's statistics are means over the copies: one value (out_axes None).
+            outs, stats = jax.vmap(phi, in_axes=(0, None), out_axes=(0, None),
+                                   axis_name="copy")(copies, stats)
             out1, out2 = (jax.tree.map(lambda a, i=i: a[i], outs) for i in range(2))
-            stats = jax.tree.map(lambda a: a[0], st)
         phi_out = dict(out1, alpha=out2["alpha"])
     else:
         phi_out, stats = phi(kp_in, stats)
@@ -258,8 +321,8 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
         err = huber(jnp.sum((x_hat - x_canon) ** 2, axis=-1), cfg.huber_scaling)
         return geometry.masked_mean(err, class_mask), upd["batch_stats"]
 
-    canon, new_stats = jax.vmap(one, axis_name="sample")(rots)
-    return canon, jax.tree.map(lambda a: a[0], new_stats)
+    # Psi's BatchNorm statistics are means over the samples: one value (out_axes None).
+    return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
 def forward_eval(
@@ -269,16 +332,9 @@ def forward_eval(
     class_mask: Float[Array, " N"],
     intrinsics: Float[Array, "3 3"] | None,
     cfg: ModelConfig,
-) -> dict[str, Array]:
-    """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi).
-
-    Returns a dict with ``shape_image_coord`` (N, 3): the 3D output in the input's
-    coordinates (visible points replaced by the input when
-    ``replace_keypoints_with_input``, depth divided by ``keypoint_rescale``), and
-    ``shape_camera`` (N, 3), ``shape_canonical`` (N, 3), ``rotation`` (3, 3),
-    ``theta`` (3,), ``alpha`` (D,), ``kp_reprojected`` (N, 2) in input coordinates,
-    ``kp_norm`` (N, 2), ``kp_mean`` (2,), ``repro`` (N,) pseudo-Huber errors.
-    """
+) -> Prediction:
+    """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi);
+    the fields of the ``Prediction`` are documented there."""
     with _precision(cfg):
         return _forward_eval(variables, kp, vis, class_mask, intrinsics, cfg)
 
@@ -290,7 +346,7 @@ def _forward_eval(
     class_mask: Float[Array, " N"],
     intrinsics: Float[Array, "3 3"] | None,
     cfg: ModelConfig,
-) -> dict[str, Array]:
+) -> Prediction:
     """``forward_eval`` under the precision context."""
     net = make_network(cfg)
     kp_cal, kp_norm, centre = _normalised_input(cfg, kp, vis, intrinsics)
@@ -307,17 +363,17 @@ def _forward_eval(
     if cfg.projection_type == "perspective":
         # Reprojections back to pixels; shape_image_coord stays in calibrated units.
         reproj_image = geometry.uncalibrate(reproj_image, intrinsics)
-    return {
-        "shape_image_coord": shape_image,
-        "shape_camera": x_cam,
-        "shape_canonical": x_canon,
-        "rotation": rot,
-        "theta": phi_out["theta"],
-        "alpha": phi_out["alpha"],
-        "translation": t,
-        "scale": phi_out["scale"],
-        "kp_reprojected": reproj_image,
-        "kp_norm": kp_norm,
-        "kp_mean": centre,
-        "repro": huber(dist_sq, cfg.huber_scaling),
-    }
+    return Prediction(
+        shape_image_coord=shape_image,
+        shape_camera=x_cam,
+        shape_canonical=x_canon,
+        rotation=rot,
+        theta=phi_out["theta"],
+        alpha=phi_out["alpha"],
+        translation=t,
+        scale=phi_out["scale"],
+        kp_reprojected=reproj_image,
+        kp_norm=kp_norm,
+        kp_mean=centre,
+        repro=huber(dist_sq, cfg.huber_scaling),
+    )

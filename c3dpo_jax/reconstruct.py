@@ -40,7 +40,7 @@ class Reconstruction(NamedTuple):
     """Numpy outputs; leading dims ``*B`` as the input's (none for one sample).
 
     shape_3d (*B, N, 3): the 3D points in the camera frame, in the input's units
-      (= ``forward_eval``'s ``shape_image_coord``; depth sign is arbitrary).
+      (= ``model.Prediction.shape_image_coord``; depth sign is arbitrary).
     shape_canonical (*B, N, 3): the shape in the model's canonical frame.
     rotation (*B, 3, 3): camera rotation, ``shape_camera = shape_canonical @ R.T``.
     alpha (*B, D): shape-basis coefficients.
@@ -224,8 +224,8 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
 @jax.jit
 def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
     out = inference.forward_batch(params.variables, kp, vis, class_mask, K, params.config)
-    return Reconstruction(out["shape_image_coord"], out["shape_canonical"], out["rotation"],
-                          out["alpha"], out["kp_reprojected"])
+    return Reconstruction(out.shape_image_coord, out.shape_canonical, out.rotation, out.alpha,
+                          out.kp_reprojected)
 
 
 def reconstruct(

@@ -96,11 +96,11 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
         keys = jax.random.split(key, batch["vis"].shape[0])
         intrinsics = batch.get("intrinsics")
         per_example = partial(model.forward_train, cfg=model_cfg)
+        # BatchNorm's statistics are batch means: one value, not one per example.
         terms, stats = jax.vmap(
             per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
-            axis_name="batch",
+            out_axes=(0, None), axis_name="batch",
         )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
-        stats = jax.tree.map(lambda a: a[0], stats)
         l_repro = losses.reprojection(
             terms["repro"], batch["vis"], model_cfg.reprojection_normalization
         )
