@@ -12,6 +12,7 @@ the canonicalisation loss), Sec. 3.5 (in-plane rotations).
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from c3dpo_jax.types import Rot, Vec3
@@ -109,7 +110,7 @@ def random_rotation(
     if max_angle is None:
         q = jax.random.normal(key, (4,))
         q = q / jnp.linalg.norm(q)
-        return _quaternion_to_matrix(q)
+        return quaternion_to_matrix(q)
     k_axis, k_angle = jax.random.split(key)
     if axis is None:
         axis = jax.random.normal(k_axis, (3,))
@@ -124,13 +125,16 @@ def in_plane_rotation(key: jax.Array, max_angle: float) -> Float[Array, "2 2"]:
     return random_rotation(key, max_angle, axis=jnp.array([0.0, 0.0, 1.0]))[:2, :2]
 
 
-def _quaternion_to_matrix(q: Float[Array, "4"]) -> Rot:
-    """Unit quaternion ``(w, x, y, z)`` to rotation matrix."""
-    w, x, y, z = q
-    return jnp.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+def quaternion_to_matrix(
+    q: Float[np.ndarray | Array, "*B 4"],
+) -> Float[np.ndarray | Array, "*B 3 3"]:
+    """Unit quaternions ``(w, x, y, z)`` to rotation matrices; numpy in, numpy out (the
+    data generators' cameras, ``data.rotations``), else jax (``random_rotation``)."""
+    xp = np if isinstance(q, np.ndarray) else jnp
+    w, x, y, z = (q[..., i] for i in range(4))
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    return xp.stack([xp.stack(row, -1) for row in rows], -2)

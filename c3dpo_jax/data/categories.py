@@ -14,7 +14,7 @@ Object frame: x right, y up, z forward, about unit size.
 import numpy as np
 
 from c3dpo_jax.data.dataset import KeypointData
-from c3dpo_jax.data.synthetic import _upright_rotations
+from c3dpo_jax.data.rotations import upright_rotations
 
 
 def _box(length, width, height, y0=0.0):
@@ -96,7 +96,7 @@ def make_split(
         block = slice(starts[c], starts[c] + counts[c])
         shapes[rows, block] = pts + 0.01 * variation * rng.normal(size=pts.shape)
         mask[rows, block] = 1.0
-    rots = _upright_rotations(rng, n_samples, max_elevation)
+    rots = upright_rotations(rng, n_samples, max_elevation)
     kp3d = np.einsum("mij,mnj->mni", rots, shapes) * mask[..., None]
     vis = mask * (rng.uniform(size=mask.shape) >= occlusion)
     # At least three visible points of the sample's own class.

@@ -16,7 +16,7 @@ Glossary: P poses, V views per pose, M = P V samples, J = 17 joints, N = J + den
 import numpy as np
 
 from c3dpo_jax.data.dataset import KeypointData
-from c3dpo_jax.data.synthetic import _random_rotations, _upright_rotations
+from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_rotations
 
 PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
 JOINT_NAMES = ("hip", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "spine",
@@ -50,15 +50,7 @@ for _j in (12, 15):  # elbows: forearm forwards
 
 def _euler(angles: np.ndarray) -> np.ndarray:
     """(..., 3) angles about x, y, z -> (..., 3, 3) rotations R = Ry Rx Rz."""
-    c, s = np.cos(angles), np.sin(angles)
-    one, zero = np.ones_like(c[..., 0]), np.zeros_like(c[..., 0])
-
-    def mat(rows):
-        return np.stack([np.stack(r, -1) for r in rows], -2)
-
-    rx = mat([[one, zero, zero], [zero, c[..., 0], -s[..., 0]], [zero, s[..., 0], c[..., 0]]])
-    ry = mat([[c[..., 1], zero, s[..., 1]], [zero, one, zero], [-s[..., 1], zero, c[..., 1]]])
-    rz = mat([[c[..., 2], -s[..., 2], zero], [s[..., 2], c[..., 2], zero], [zero, zero, one]])
+    rx, ry, rz = (axis_rotation(a, angles[..., i]) for i, a in enumerate("xyz"))
     return ry @ rx @ rz
 
 
@@ -180,8 +172,8 @@ def make_split(n_poses: int, *, views_per_pose: int = 30, dense_points: int = 0,
     centroid = pos.mean(1, keepdims=True)
     points, pos = points - centroid, pos - centroid
     m = n_poses * views_per_pose
-    rots = (_random_rotations(rng, m) if cameras == "uniform"
-            else _upright_rotations(rng, m, max_elevation))
+    rots = (random_rotations(rng, m) if cameras == "uniform"
+            else upright_rotations(rng, m, max_elevation))
     rep = np.repeat(np.arange(n_poses), views_per_pose)
     kp3d = np.einsum("mij,mnj->mni", rots, points[rep])
     n = points.shape[1]

@@ -32,7 +32,7 @@ from absl import logging
 from c3dpo_jax import skeletons
 from c3dpo_jax.data import json_dataset
 from c3dpo_jax.data.dataset import KeypointData
-from c3dpo_jax.data.synthetic import _random_rotations, _upright_rotations
+from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_rotations
 
 
 def load_sequence(path: str, key: str = "X") -> np.ndarray:
@@ -114,8 +114,8 @@ def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_
            name, scale):
     f, k, _ = x.shape
     m = f * views_per_frame
-    rots = (_random_rotations(rng, m) if cameras == "uniform"
-            else _upright_rotations(rng, m, max_elevation))
+    rots = (random_rotations(rng, m) if cameras == "uniform"
+            else upright_rotations(rng, m, max_elevation))
     kp3d = np.einsum("mij,mnj->mni", rots, np.repeat(x, views_per_frame, 0))
     vis = (rng.uniform(size=(m, k)) >= occlusion).astype(np.float32)
     keep = np.argsort(rng.uniform(size=(m, k)), axis=1)[:, :min_visible]
@@ -197,15 +197,6 @@ def parse_bvh(text: str):
     return names, parents, np.array(offsets), channels, motion
 
 
-def _axis_rotation(axis: str, degrees: np.ndarray) -> np.ndarray:
-    a = np.deg2rad(degrees)
-    c, s, one, zero = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    rows = {"X": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
-            "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
-            "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]]}[axis]
-    return np.stack([np.stack(r, -1) for r in rows], -2)
-
-
 def bvh_positions(text: str, include_end_sites: bool = False):
     """Global joint positions (F, J, 3) of a BVH file by forward kinematics, and names."""
     names, parents, offsets, channels, motion = parse_bvh(text)
@@ -221,7 +212,7 @@ def bvh_positions(text: str, include_end_sites: bool = False):
             if ch.endswith("position"):
                 local_t[:, "XYZ".index(ch[0])] += value
             else:
-                local_r = local_r @ _axis_rotation(ch[0], value)
+                local_r = local_r @ axis_rotation(ch[0], np.deg2rad(value))  # BVH: degrees
         p = parents[j]
         if p < 0:
             pos[:, j], rot[:, j] = local_t, local_r

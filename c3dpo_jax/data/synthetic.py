@@ -11,41 +11,7 @@ space and different random poses and cameras, so test poses are unseen.
 import numpy as np
 
 from c3dpo_jax.data.dataset import KeypointData
-
-
-def _random_rotations(rng: np.random.Generator, m: int) -> np.ndarray:
-    """(m, 3, 3) rotations, uniform on SO(3) (normalised Gaussian quaternions)."""
-    q = rng.normal(size=(m, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-
-
-def _upright_rotations(rng: np.random.Generator, m: int, max_elevation: float) -> np.ndarray:
-    """(m, 3, 3) cameras looking at an upright object (y up) from any azimuth.
-
-    Azimuth uniform in [-pi, pi), elevation and roll uniform in +-max_elevation, like
-    the cameras around a standing person (Human3.6M) or the release's up3d views.
-    """
-    yaw = rng.uniform(-np.pi, np.pi, m)
-    pitch = rng.uniform(-max_elevation, max_elevation, m)
-    roll = rng.uniform(-max_elevation, max_elevation, m) / 2
-    c, s = np.cos, np.sin
-    one, zero = np.ones(m), np.zeros(m)
-    ry = np.stack([np.stack([c(yaw), zero, s(yaw)], -1), np.stack([zero, one, zero], -1),
-                   np.stack([-s(yaw), zero, c(yaw)], -1)], 1)
-    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c(pitch), -s(pitch)], -1),
-                   np.stack([zero, s(pitch), c(pitch)], -1)], 1)
-    rz = np.stack([np.stack([c(roll), -s(roll), zero], -1), np.stack([s(roll), c(roll), zero], -1),
-                   np.stack([zero, zero, one], -1)], 1)
-    return np.einsum("mij,mjk,mkl->mil", rz, rx, ry)
+from c3dpo_jax.data.rotations import random_rotations, upright_rotations
 
 
 def shape_model(n_keypoints: int, n_modes: int, deformation: float, seed: int):
@@ -81,9 +47,9 @@ def make_split(
     coeffs = rng.normal(size=(n_samples, n_modes)).astype(np.float32)
     shapes = mean + np.einsum("md,dnc->mnc", coeffs, modes)
     if cameras == "uniform":
-        rots = _random_rotations(rng, n_samples)
+        rots = random_rotations(rng, n_samples)
     elif cameras == "upright":
-        rots = _upright_rotations(rng, n_samples, max_elevation)
+        rots = upright_rotations(rng, n_samples, max_elevation)
     else:
         raise ValueError(f"unknown cameras {cameras!r}: 'uniform' or 'upright'")
     rots = rots.astype(np.float32)
