@@ -7,7 +7,7 @@
 
 Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
 ``kp_vis``, or ``{"dataset", "data"}``), or COCO-style keypoint annotations
-(``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v > 0;
+(``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v >= 1;
 annotations with no visible point are skipped with a warning).
 Pictures (``--figures``): the skeleton is ``--skeleton`` (a name such as ``h36m``, or
 index pairs ``0-1,1-2``), else the input file's, else the training data's; the up direction
@@ -49,30 +49,12 @@ def _define_flags() -> dict:
 
 
 def read_coco(obj: dict) -> dict[str, np.ndarray]:
-    """COCO keypoint annotations -> ``kp (M, N, 2)``, ``vis (M, N)``, ``index (M,)``."""
-    anns = obj["annotations"]
-    if not anns:
-        raise ValueError("the COCO file has no annotations")
-    kps, viss, index = [], [], []
-    for i, ann in enumerate(anns):
-        flat = np.asarray(ann.get("keypoints", []), np.float32)
-        if flat.size == 0 or flat.size % 3:
-            raise ValueError(f"annotation {i}: 'keypoints' must be [x, y, v] * N")
-        triples = flat.reshape(-1, 3)
-        if kps and len(triples) != kps[0].shape[0]:
-            raise ValueError(f"annotation {i} has {len(triples)} keypoints, earlier ones "
-                             f"{kps[0].shape[0]}")
-        vis = (triples[:, 2] > 0).astype(np.float32)
-        if not vis.any():
-            logging.warning("annotation %d (id %s) has no visible keypoint: skipped",
-                            i, ann.get("id"))
-            continue
-        kps.append(triples[:, :2] * vis[:, None])
-        viss.append(vis)
-        index.append(i)
-    if not kps:
-        raise ValueError("no COCO annotation has a visible keypoint")
-    return {"kp": np.stack(kps), "vis": np.stack(viss), "index": np.asarray(index)}
+    """COCO keypoint annotations -> ``kp (M, N, 2)``, ``vis (M, N)``, ``index (M,)``: those
+    with a visible point (``importers.read_coco``, the package's one COCO reader)."""
+    from c3dpo_jax.data import importers
+
+    data, index = importers.read_coco(obj)
+    return {"kp": data.kp, "vis": data.vis, "index": index}
 
 
 def read_input(path: str) -> dict[str, np.ndarray]:

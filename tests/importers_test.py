@@ -87,6 +87,21 @@ def test_coco_annotations_become_a_2d_training_set(caplog):
         importers.coco_to_data({"annotations": [{"keypoints": [1, 2]}]})
 
 
+def test_one_coco_reader_keeps_the_positions_of_the_annotations_it_reads(caplog):
+    obj = {"annotations": [{"bbox": [0, 0, 1, 1]},  # not a keypoint annotation
+                           {"category_id": 2, "keypoints": [1, 2, 2, 3, 4, 2]},
+                           {"category_id": 1, "keypoints": [0, 0, 0, 0, 0, 0]},
+                           {"category_id": 1, "keypoints": [5, 6, 1, 7, 8, 0]}]}
+    data, index = importers.read_coco(obj)
+    assert index.tolist() == [1, 3] and data.vis.tolist() == [[1, 1], [1, 0]]
+    assert "1 of 3 annotations have no visible keypoint: skipped (annotations [2])" in caplog.text
+    assert importers.read_coco(obj, category_id=1)[1].tolist() == [3]
+    with pytest.raises(ValueError, match="annotation 3 has 1 keypoints, earlier ones 2"):
+        importers.read_coco({"annotations": obj["annotations"][:3] + [{"keypoints": [1, 2, 1]}]})
+    with pytest.raises(ValueError, match="every COCO annotation with keypoints has no visible"):
+        importers.read_coco({"annotations": obj["annotations"][2:3]})
+
+
 def test_cli_writes_json_for_each_kind(tmp_path, capsys):
     (tmp_path / "walk.bvh").write_text(TINY_BVH * 1)
     importers.main(["bvh", str(tmp_path / "walk.bvh"), "--out_dir", str(tmp_path),

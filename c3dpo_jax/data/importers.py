@@ -249,32 +249,59 @@ def save(data: KeypointData, path: str, *, y_up: bool, skeleton=None, unit: str 
         json.dump({"dataset": data.name, **style, "data": json_dataset.to_json_entries(data)}, f)
 
 
-def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id=None,
-                 name: str = "coco") -> KeypointData:
-    """COCO-style keypoint annotations -> 2D-only ``KeypointData`` (no ``kp3d``).
+def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=None,
+              name: str = "coco") -> tuple[KeypointData, np.ndarray]:
+    """COCO-style keypoint annotations -> 2D-only ``KeypointData`` (no ``kp3d``) and the
+    position (M,) of each kept annotation in ``obj["annotations"]``: the one COCO reader
+    (``coco_to_data`` for training sets, ``predict`` for inference).
 
-    A point is visible when its flag v >= ``min_v`` (1: labelled, maybe occluded;
-    2: labelled and visible). Annotations with fewer than ``min_visible`` visible
-    points are dropped and counted in the log.
+    Annotations without ``keypoints`` (other kinds) and, with ``category_id``, of other
+    categories are passed over. A point is visible when its flag v >= ``min_v`` (1:
+    labelled, maybe occluded; 2: labelled and visible); annotations with fewer than
+    ``min_visible`` visible points are skipped with one warning line. Malformed keypoint
+    lists are a ``ValueError`` naming the annotation.
     """
     images = {im["id"]: im.get("file_name", "") for im in obj.get("images", [])}
-    anns = [a for a in obj.get("annotations", []) if "keypoints" in a
-            and (category_id is None or a.get("category_id") == category_id)]
-    if not anns:
+    picked = [(i, a) for i, a in enumerate(obj.get("annotations", [])) if "keypoints" in a
+              and (category_id is None or a.get("category_id") == category_id)]
+    if not picked:
         raise ValueError("no annotations with 'keypoints' found")
-    lengths = {len(a["keypoints"]) for a in anns}
-    if len(lengths) != 1 or next(iter(lengths)) % 3:
-        raise ValueError(f"keypoint lists have lengths {sorted(lengths)}; expected one length "
-                         "3K (x, y, v per point) for all annotations")
-    kpv = np.array([a["keypoints"] for a in anns], np.float32).reshape(len(anns), -1, 3)
+    rows = []
+    for i, ann in picked:
+        flat = np.asarray(ann["keypoints"], np.float32).reshape(-1)
+        if flat.size == 0 or flat.size % 3:
+            raise ValueError(f"annotation {i}: 'keypoints' has {flat.size} numbers; expected "
+                             "one length 3K for all annotations, [x, y, v] * N")
+        if rows and flat.size != rows[0].size:
+            raise ValueError(f"annotation {i} has {flat.size // 3} keypoints, earlier ones "
+                             f"{rows[0].size // 3}; expected one length 3K for all annotations")
+        rows.append(flat)
+    kpv = np.stack(rows).reshape(len(rows), -1, 3)
     vis = (kpv[..., 2] >= min_v).astype(np.float32)
     keep = vis.sum(1) >= min_visible
+    index = np.array([i for i, _ in picked])
+    what = ("no visible keypoint" if min_visible <= 1
+            else f"fewer than {min_visible} visible points")
+    if not keep.any():
+        raise ValueError(f"every COCO annotation with keypoints has {what}")
     if not keep.all():
-        logging.warning("coco: dropped %d of %d annotations with fewer than %d visible points",
-                        int((~keep).sum()), len(anns), min_visible)
-    paths = np.array([images.get(a.get("image_id"), "") for a in anns])[keep]
-    return KeypointData(kp=(kpv[..., :2] * vis[..., None])[keep], vis=vis[keep],
+        skipped = index[~keep]
+        logging.warning("coco: %d of %d annotations have %s: skipped (annotations %s%s)",
+                        skipped.size, len(picked), what, skipped[:10].tolist(),
+                        " ..." if skipped.size > 10 else "")
+    paths = np.array([images.get(a.get("image_id"), "") for _, a in picked])[keep]
+    data = KeypointData(kp=(kpv[..., :2] * vis[..., None])[keep], vis=vis[keep],
                         image_path=paths, name=name)
+    return data, index[keep]
+
+
+def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id=None,
+                 name: str = "coco") -> KeypointData:
+    """COCO-style keypoint annotations -> a 2D-only training set (``read_coco``; by
+    default annotations need two visible points, the least that has a shape)."""
+    data, _ = read_coco(obj, min_v=min_v, min_visible=min_visible, category_id=category_id,
+                        name=name)
+    return data
 
 
 def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str, **style):
