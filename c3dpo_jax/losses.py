@@ -1,26 +1,26 @@
-"""C3DPO's losses: the pseudo-Huber penalty and the batch reductions of its terms.
+"""C3DPO's objective: the batch reductions of its terms, their weights and the loss.
 
 Glossary: B batch, N keypoints, S canonicalisation samples. The per-example forward
-(``model.forward_train``) returns elementwise terms; this module owns the one explicit
-masked reduction of each, so the normalisation is written down in one place.
+(``model.forward_train``, vmapped over the batch) returns elementwise terms (the
+pseudo-Huber penalty, ``penalties.huber``, applied per point); this module owns the
+one explicit masked reduction of each, so the normalisation is written down in one
+place, and the weighted objective ``make_loss_fn`` that the train step differentiates.
 
 Paper: eq. 4 (l1, reprojection), eq. 5 (l2, canonicalisation), eq. 6 (l3, the
 reprojection loss with the shape coefficients of an in-plane rotated copy).
 """
 
+import dataclasses
+from functools import partial
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from c3dpo_jax import model
+from c3dpo_jax.penalties import huber
 
-def huber(dist_sq: Float[Array, "*S"], scaling: float) -> Float[Array, "*S"]:
-    """Pseudo-Huber of a squared distance: ``(sqrt(1 + d2/eps^2) - 1) * eps``.
-
-    Written on the squared distance so its gradient is finite at a perfect fit
-    (the norm itself is not differentiable at 0), and in the algebraically equal form
-    ``d2 / (eps (sqrt(1 + d2/eps^2) + 1))``, which has no cancellation for tiny
-    residuals in float32.
-    """
-    return dist_sq / (scaling * (jnp.sqrt(1.0 + dist_sq / scaling**2) + 1.0))
+__all__ = ["LossConfig", "canonicalisation", "huber", "make_loss_fn", "reprojection"]
 
 
 def reprojection(
@@ -46,3 +46,68 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     if canon.shape[-1] == 0:
         return jnp.zeros(())
     return jnp.mean(canon)
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """Weights of the objective ``w_reprojection * l_repro + w_canonicalization * l_canon``.
+
+    ``canonicalization_ramp=(first, last)`` (steps) moves the canonicalisation weight
+    linearly from ``w_canonicalization`` at step ``first`` to ``w_canonicalization_final``
+    at step ``last`` (``first == last``: a jump); empty: the weight is constant."""
+
+    w_reprojection: float = 1.0
+    w_canonicalization: float = 1.0
+    w_canonicalization_final: float | None = None
+    canonicalization_ramp: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        ramp = tuple(int(s) for s in self.canonicalization_ramp)
+        object.__setattr__(self, "canonicalization_ramp", ramp)
+        if ramp and (len(ramp) != 2 or not 0 <= ramp[0] <= ramp[1]
+                     or self.w_canonicalization_final is None):
+            raise ValueError(
+                "loss.canonicalization_ramp must be (first_step, last_step) with "
+                "0 <= first_step <= last_step, and loss.w_canonicalization_final set; got "
+                f"{ramp} and {self.w_canonicalization_final}")
+
+    def canonicalization_weight(self, step):
+        """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
+        if not self.canonicalization_ramp:
+            return self.w_canonicalization
+        first, last = self.canonicalization_ramp
+        step = jnp.asarray(step, jnp.float32)
+        frac = jnp.clip((step - first) / (last - first), 0.0, 1.0) if last > first else (
+            (step >= first).astype(jnp.float32))
+        return self.w_canonicalization + frac * (
+            self.w_canonicalization_final - self.w_canonicalization)
+
+
+def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
+    """``loss_fn(params, batch_stats, batch, key, step=0) -> (objective, (batch_stats,
+    metrics))``; ``step`` only matters for a ramped canonicalisation weight."""
+
+    def loss_fn(params, batch_stats, batch, key, step=0):
+        variables = {"params": params, "batch_stats": batch_stats}
+        keys = jax.random.split(key, batch["vis"].shape[0])
+        intrinsics = batch.get("intrinsics")
+        per_example = partial(model.forward_train, cfg=model_cfg)
+        # BatchNorm's statistics are batch means: one value, not one per example.
+        terms, stats = jax.vmap(
+            per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
+            out_axes=(0, None), axis_name="batch",
+        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
+        l_repro = reprojection(
+            terms["repro"], batch["vis"], model_cfg.reprojection_normalization
+        )
+        l_canon = canonicalisation(terms["canon"])
+        w_canon = loss_cfg.canonicalization_weight(step)
+        objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
+        metrics = {
+            "loss": objective,
+            "loss/reprojection": l_repro,
+            "loss/canonicalisation": l_canon,
+        }
+        return objective, (stats, metrics)
+
+    return loss_fn

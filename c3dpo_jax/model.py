@@ -20,8 +20,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, so3
-from c3dpo_jax.losses import huber
 from c3dpo_jax.networks import C3DPONet
+from c3dpo_jax.penalties import huber
 from c3dpo_jax.types import Kp2, Vis
 
 Variables = dict[str, Any]

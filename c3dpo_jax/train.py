@@ -2,8 +2,10 @@
 
 Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 
-- ``make_train_step`` -> ``train_step(state, batch, key)``: one pure, jittable SGD step;
-  the per-example forward is vmapped over the batch (BatchNorm reduces over it).
+- ``make_train_step`` -> ``train_step(state, batch, key)``: one pure, jittable SGD step
+  on the objective ``losses.make_loss_fn`` (the per-example forward vmapped over the
+  batch, BatchNorm reducing over it; ``LossConfig`` and ``make_loss_fn`` stay importable
+  from here).
 - ``make_train_chunk`` -> ``chunk(state, data, train_key, n_steps)``: ``lax.scan`` over
   ``n_steps`` steps; each step samples its batch (with replacement, as the release)
   from the device-resident ``data`` with ``fold_in(train_key, step)``, so the data
@@ -31,7 +33,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -40,9 +41,10 @@ import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from c3dpo_jax import baselines, checkpoint, evaluation, losses, model, tensorboard, validation
+from c3dpo_jax import baselines, checkpoint, evaluation, model, tensorboard, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
 from c3dpo_jax.inference import evaluate_split, make_eval_fn, predict_split
+from c3dpo_jax.losses import LossConfig, make_loss_fn
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -50,71 +52,6 @@ from c3dpo_jax.state import (
     make_optimizer,
     make_schedule,
 )
-
-
-@dataclasses.dataclass(frozen=True)
-class LossConfig:
-    """Weights of the objective ``w_reprojection * l_repro + w_canonicalization * l_canon``.
-
-    ``canonicalization_ramp=(first, last)`` (steps) moves the canonicalisation weight
-    linearly from ``w_canonicalization`` at step ``first`` to ``w_canonicalization_final``
-    at step ``last`` (``first == last``: a jump); empty: the weight is constant."""
-
-    w_reprojection: float = 1.0
-    w_canonicalization: float = 1.0
-    w_canonicalization_final: float | None = None
-    canonicalization_ramp: tuple[int, ...] = ()
-
-    def __post_init__(self):
-        ramp = tuple(int(s) for s in self.canonicalization_ramp)
-        object.__setattr__(self, "canonicalization_ramp", ramp)
-        if ramp and (len(ramp) != 2 or not 0 <= ramp[0] <= ramp[1]
-                     or self.w_canonicalization_final is None):
-            raise ValueError(
-                "loss.canonicalization_ramp must be (first_step, last_step) with "
-                "0 <= first_step <= last_step, and loss.w_canonicalization_final set; got "
-                f"{ramp} and {self.w_canonicalization_final}")
-
-    def canonicalization_weight(self, step):
-        """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
-        if not self.canonicalization_ramp:
-            return self.w_canonicalization
-        first, last = self.canonicalization_ramp
-        step = jnp.asarray(step, jnp.float32)
-        frac = jnp.clip((step - first) / (last - first), 0.0, 1.0) if last > first else (
-            (step >= first).astype(jnp.float32))
-        return self.w_canonicalization + frac * (
-            self.w_canonicalization_final - self.w_canonicalization)
-
-
-def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
-    """``loss_fn(params, batch_stats, batch, key, step=0) -> (objective, (batch_stats,
-    metrics))``; ``step`` only matters for a ramped canonicalisation weight."""
-
-    def loss_fn(params, batch_stats, batch, key, step=0):
-        variables = {"params": params, "batch_stats": batch_stats}
-        keys = jax.random.split(key, batch["vis"].shape[0])
-        intrinsics = batch.get("intrinsics")
-        per_example = partial(model.forward_train, cfg=model_cfg)
-        # BatchNorm's statistics are batch means: one value, not one per example.
-        terms, stats = jax.vmap(
-            per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
-            out_axes=(0, None), axis_name="batch",
-        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
-        l_repro = losses.reprojection(
-            terms["repro"], batch["vis"], model_cfg.reprojection_normalization
-        )
-        l_canon = losses.canonicalisation(terms["canon"])
-        w_canon = loss_cfg.canonicalization_weight(step)
-        objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
-        metrics = {
-            "loss": objective,
-            "loss/reprojection": l_repro,
-            "loss/canonicalisation": l_canon,
-        }
-        return objective, (stats, metrics)
-
-    return loss_fn
 
 
 def make_train_step(model_cfg, loss_cfg, tx: optax.GradientTransformation, schedule=None):

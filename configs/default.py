@@ -58,7 +58,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     )
     c.model = dataclasses.asdict(ModelConfig())
     # canonicalization_ramp=(first, last) steps: the canonicalisation weight moves linearly
-    # to w_canonicalization_final between them (train.LossConfig); () keeps it constant.
+    # to w_canonicalization_final between them (losses.LossConfig); () keeps it constant.
     c.loss = dict(
         w_reprojection=1.0, w_canonicalization=1.0,
         w_canonicalization_final=ml_collections.config_dict.placeholder(float),

@@ -1,4 +1,5 @@
-"""Pseudo-Huber and the masked reductions against numpy re-implementations."""
+"""Pseudo-Huber and the masked reductions against numpy re-implementations; where the
+objective lives."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -50,3 +51,10 @@ def test_canonicalisation_is_the_mean_and_zero_without_samples():
     c = jnp.array([[0.1, 0.3], [0.2, 0.4]])
     np.testing.assert_allclose(losses.canonicalisation(c), 0.25, rtol=1e-6)
     assert float(losses.canonicalisation(jnp.zeros((3, 0)))) == 0.0
+
+
+def test_the_objective_lives_here_and_stays_importable_from_train():
+    from c3dpo_jax import model, penalties, train
+
+    assert train.LossConfig is losses.LossConfig and train.make_loss_fn is losses.make_loss_fn
+    assert losses.huber is penalties.huber is model.huber
