@@ -57,10 +57,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
 def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):
     """analyse.floors: rigid data has a zero rigid floor; rank-1 deformations of it a zero
     PCA floor (D >= 1) and a positive rigid one; the rigid baseline's 2D distance is zero on
-    noiseless rigid views."""
-    sys.path.insert(0, os.path.dirname(SUITE))
-    import analyse
-
+    noiseless rigid views. (In a subprocess: the suite's absl flags must not meet main's.)"""
     from c3dpo_jax.data import importers, json_dataset
 
     rng = np.random.default_rng(1)
@@ -70,7 +67,11 @@ def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):
         train, test = importers.views_from_sequence(x, views_per_frame=4, seed=0, name=name)
         for split, data in (("train", train), ("test", test)):
             json_dataset.save(data, str(tmp_path / f"{name}_{split}.json"))
-    rigid = list(analyse.floors("rigid", str(tmp_path), 2).values())
-    rank1 = list(analyse.floors("rank1", str(tmp_path), 2).values())
+    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(SUITE)!r}); import analyse; "
+            f"print(json.dumps([list(analyse.floors(n, {str(tmp_path)!r}, 2).values()) "
+            "for n in ('rigid', 'rank1')]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True).stdout
+    rigid, rank1 = json.loads(out.strip().splitlines()[-1])
     np.testing.assert_allclose(rigid, 0.0, atol=1e-4)
     assert rank1[0] > 0.05 and rank1[1] < 1e-3 and rank1[2] > 0.01
