@@ -52,11 +52,16 @@ def _file_hashes(step_dir: str) -> dict[str, str]:
     return out
 
 
-def _write_checksums(step_dir: str) -> None:
-    hashes, path = _file_hashes(step_dir), os.path.join(step_dir, CHECKSUM_FILE)
+def write_json(path: str, obj: Any, **dump_kw) -> None:
+    """Writes ``obj`` as JSON whole or not at all: a kill mid-write leaves the old file."""
     with open(path + ".tmp", "w") as f:
-        json.dump(hashes, f, indent=0, sort_keys=True)
+        json.dump(obj, f, **dump_kw)
     os.replace(path + ".tmp", path)
+
+
+def _write_checksums(step_dir: str) -> None:
+    write_json(os.path.join(step_dir, CHECKSUM_FILE), _file_hashes(step_dir), indent=0,
+               sort_keys=True)
 
 
 def _checksum_problem(step_dir: str) -> str | None:
@@ -179,10 +184,7 @@ def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) 
 
 def save_config(workdir: str, config: dict[str, Any]) -> None:
     """Writes ``config.json`` whole or not at all (a kill mid-write leaves the old one)."""
-    path = os.path.join(workdir, CONFIG_FILE)
-    with open(path + ".tmp", "w") as f:
-        json.dump(config, f, indent=2, sort_keys=True)
-    os.replace(path + ".tmp", path)
+    write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
 
 
 # What makes a checkpoint another run's: the network (model), the optimiser and its

@@ -218,17 +218,24 @@ class _MetricsWriter:
 
 
 def _write_results(workdir: str, results: dict) -> None:
-    with open(os.path.join(workdir, "eval_results.json"), "w") as f:
-        json.dump(results, f, indent=2)
+    checkpoint.write_json(os.path.join(workdir, "eval_results.json"), results, indent=2)
 
 
 def _read_results(workdir: str) -> dict:
-    """The workdir's ``eval_results.json`` ({} when there is none yet)."""
+    """The workdir's ``eval_results.json`` ({} when there is none yet, or with a warning
+    when it cannot be read: the evaluations so far are lost, not the run)."""
     path = os.path.join(workdir, "eval_results.json")
     if not os.path.exists(path):
         return {}
-    with open(path) as f:
-        return json.load(f)
+    try:
+        with open(path) as f:
+            results = json.load(f)
+        if not isinstance(results, dict):
+            raise ValueError("not a JSON object")
+        return results
+    except (ValueError, UnicodeDecodeError) as e:
+        logging.warning("%s cannot be read (%s): its evaluation history starts again", path, e)
+        return {}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -266,3 +266,14 @@ def test_cosine_schedule_matches_its_formula():
     for bad in (dict(schedule="cosine"), dict(schedule="linear")):
         with pytest.raises(ValueError, match="optim"):
             make_schedule(OptimConfig(**bad), 100)
+
+
+def test_results_file_is_replaced_whole_and_a_damaged_one_only_warns(tmp_path, caplog):
+    train._write_results(str(tmp_path), {"history": [{"step": 5}]})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_results.json"]
+    assert train._read_results(str(tmp_path)) == {"history": [{"step": 5}]}
+    text = (tmp_path / "eval_results.json").read_text()
+    (tmp_path / "eval_results.json").write_text(text[: len(text) // 2])  # a kill mid-write
+    with caplog.at_level("WARNING"):
+        assert train._read_results(str(tmp_path)) == {}
+    assert "eval_results.json cannot be read" in caplog.text
