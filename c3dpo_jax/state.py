@@ -33,7 +33,7 @@ class TrainState:
 class OptimConfig:
     """Optimiser settings; the defaults are the release's (SGD, lr 1e-3, x0.1 at milestones)."""
 
-    optimizer: str = "sgd"  # "sgd" | "adam"
+    optimizer: str = "sgd"  # "sgd" | "adam" | "adamw" (decoupled decay of the kernels)
     lr: float = 1e-3
     momentum: float = 0.9
     weight_decay: float = 5e-4
@@ -82,7 +82,21 @@ def _adam(cfg: OptimConfig, schedule: optax.Schedule) -> optax.GradientTransform
     return optax.chain(optax.add_decayed_weights(cfg.weight_decay), optax.adam(schedule))
 
 
-_OPTIMIZERS = {"sgd": _sgd, "adam": _adam}
+def _kernels(params):
+    """True for dense kernels (the basis, the heads, the trunks' weights); False for
+    biases (the mean shape among them) and BatchNorm's scales and offsets."""
+    return jax.tree_util.tree_map_with_path(
+        lambda path, _: getattr(path[-1], "key", None) == "kernel", params)
+
+
+def _adamw(cfg: OptimConfig, schedule: optax.Schedule) -> optax.GradientTransformation:
+    # Decoupled weight decay (Loshchilov & Hutter): each step shrinks the kernels by
+    # lr * weight_decay, outside Adam's normalisation, so the decay is felt by every
+    # kernel alike instead of being rescaled away as an L2 gradient term is.
+    return optax.adamw(schedule, weight_decay=cfg.weight_decay, mask=_kernels)
+
+
+_OPTIMIZERS = {"sgd": _sgd, "adam": _adam, "adamw": _adamw}
 
 
 def make_optimizer(cfg: OptimConfig, steps_per_epoch: int) -> optax.GradientTransformation:

@@ -16,7 +16,7 @@ from typing import Any
 
 # Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
 PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
-OPTIMIZERS = ("sgd", "adam")  # state.make_optimizer
+OPTIMIZERS = ("sgd", "adam", "adamw")  # state.make_optimizer
 MATMUL_PRECISIONS = (
     "default",
     "bfloat16",
