@@ -110,6 +110,26 @@ def test_sgd_matches_the_pytorch_update_with_weight_decay_in_the_gradient():
     np.testing.assert_allclose(p["w"], pn, rtol=1e-6)
 
 
+def test_adamw_decays_the_kernels_outside_adam_and_leaves_biases_alone():
+    # Adam's first step moves every parameter with a nonzero gradient by lr * sign(g)
+    # (m / sqrt(v) = g / |g| after bias correction); the decoupled decay then subtracts
+    # lr * wd * p from kernels only, so biases (the mean shape) and BatchNorm keep their
+    # values when their gradient is zero.
+    cfg = OptimConfig(optimizer="adamw", lr=0.1, weight_decay=0.5)
+    tx = make_optimizer(cfg, steps_per_epoch=10)
+    p = {"layer": {"kernel": jnp.array([1.0, -2.0]), "bias": jnp.array([3.0])},
+         "bn": {"scale": jnp.array([2.0])}}
+    g = {"layer": {"kernel": jnp.array([0.3, 0.0]), "bias": jnp.array([0.0])},
+         "bn": {"scale": jnp.array([0.0])}}
+    upd, _ = tx.update(g, tx.init(p), p)
+    new = optax.apply_updates(p, upd)
+    np.testing.assert_allclose(new["layer"]["kernel"],
+                               [1.0 - 0.1 * 1.0 - 0.1 * 0.5 * 1.0, -2.0 + 0.1 * 0.5 * 2.0],
+                               rtol=1e-5)
+    np.testing.assert_array_equal(new["layer"]["bias"], [3.0])
+    np.testing.assert_array_equal(new["bn"]["scale"], [2.0])
+
+
 def test_learning_rate_milestones_are_given_in_epochs():
     sched = make_schedule(
         OptimConfig(lr=1e-3, lr_milestones=(2, 3), gamma=0.1), steps_per_epoch=100

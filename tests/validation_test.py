@@ -47,7 +47,8 @@ BAD = [
     ("optim.lr", 0.0, "config.optim.lr=0.0 (must be a finite number > 0)"),
     ("optim.lr", math.nan, "config.optim.lr=nan (must be a finite number > 0)"),
     ("optim.momentum", 1.5, "config.optim.momentum=1.5 (must be a finite number >= 0 and < 1)"),
-    ("optim.optimizer", "adamw", "config.optim.optimizer='adamw' (must be one of 'sgd', 'adam')"),
+    ("optim.optimizer", "lamb",
+     "config.optim.optimizer='lamb' (must be one of 'sgd', 'adam', 'adamw')"),
     (
         "data.protocol",
         "h63m",
