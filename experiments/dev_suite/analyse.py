@@ -14,6 +14,11 @@ model's ``reprojection`` score tells whether it fits the 2D points better than a
 
 ``clips``: a trained run of a motion-capture dataset with clips (deepmimic, cmu131), test
 MPJPE of the model and of the rigid baseline per clip.
+
+``signs --runs=DIR,DIR,...``: for trained runs (their latest checkpoint), the fraction of
+test views whose better orientation is the prediction itself rather than its depth flip:
+near 1 or 0 when every view has the same handedness (0: the whole model is mirrored),
+0.5 when the sign is a coin toss per view, as a user without 3D ground truth would see it.
 """
 
 import os
@@ -34,6 +39,7 @@ from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 FLAGS = flags.FLAGS
 flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's results/runs/...)")
 flags.DEFINE_integer("n_basis", 10, "floors: size of the PCA basis")
+flags.DEFINE_list("runs", [], "signs: workdirs of trained runs")
 
 
 def _rotate_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -103,9 +109,28 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
     return rows
 
 
+def sign_agreement(run: str) -> float:
+    """Fraction of the run's test views whose unflipped prediction is the better one."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
+    pred = c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis).shape_3d
+    per = evaluation.mpjpe(evaluation.center_depth(np.asarray(pred), test.vis),
+                           evaluation.center_depth(test.kp3d, test.vis), test.vis)
+    return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
+
+
 def main(argv):
-    if len(argv) != 2 or argv[1] not in ("floors", "clips"):
-        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR")
+    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs"):
+        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=...")
+    if argv[1] == "signs":
+        print("| run | sign agreement |\n|---|---|")
+        for run in FLAGS.runs:
+            try:
+                value = f"{sign_agreement(run):.2f}"
+            except FileNotFoundError:  # the committed runs keep no checkpoints
+                value = "no checkpoint (train it again with suite.py)"
+            print(f"| {os.path.relpath(run, FLAGS.out)} | {value} |")
+        return
     if argv[1] == "floors":
         data_dir = os.path.join(FLAGS.out, "data")
         print(f"| dataset | rigid mean shape, oracle rotation | PCA D={FLAGS.n_basis}, oracle "
