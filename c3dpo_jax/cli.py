@@ -88,6 +88,22 @@ def use_configs_package(config_file: str) -> None:
     spec.loader.exec_module(module)
 
 
+def get_config(spec: str):
+    """The ConfigDict that ``--config=SPEC`` gives, for notebooks and scripts, from any
+    directory: ``SPEC`` is ``configs/NAME.py[:ARGS]`` (the bundled copy unless the path
+    exists relative to the working directory) or a config file of one's own.
+
+    Example: ``get_config("configs/synthetic.py:smoke")``.
+    """
+    path, _, arg = resolve_config(spec).partition(":")
+    use_configs_package(path)
+    name = os.path.splitext(os.path.basename(path))[0]
+    module_spec = importlib.util.spec_from_file_location(f"_c3dpo_config_{name}", path)
+    module = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(module)
+    return module.get_config(arg or None)
+
+
 def _resolve_config_argv(argv: list[str]) -> list[str]:
     """``argv`` with its ``--config`` value (``=`` or next argument) resolved."""
     argv = list(argv)

@@ -95,6 +95,20 @@ def test_own_config_importing_configs_works_when_no_configs_is_importable(
     assert _load_like_config_flags(str(path)).get_config().data.source == "json"
 
 
+def test_get_config_gives_a_bundled_config_with_its_variant_from_any_directory(
+        tmp_path, monkeypatch, clean_configs_modules):
+    monkeypatch.chdir(tmp_path)  # no configs/ here, as after pip install in a notebook
+    for name in [n for n in sys.modules if n == "configs" or n.startswith("configs.")]:
+        monkeypatch.delitem(sys.modules, name)
+    smoke = cli.get_config("configs/synthetic.py:smoke")
+    full = cli.get_config("configs/synthetic.py")
+    assert smoke.data.source == full.data.source == "synthetic"
+    assert (smoke.train.num_steps, smoke.model.n_fully_connected) == (20, 32)
+    assert full.model.n_fully_connected == 256
+    with pytest.raises(FileNotFoundError, match="configs/synthetic.py"):
+        cli.get_config("configs/no_such_config.py")
+
+
 def test_error_messages_are_one_line():
     assert cli.error_message(KeyError("kp_loc")) == "missing key 'kp_loc'"
     typo = AttributeError(KeyError("'num_step'\nDid you mean \"num_steps\" instead?"))

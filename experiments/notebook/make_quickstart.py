@@ -17,9 +17,10 @@ CELLS = [
     new_markdown_cell(
         "# C3DPO quickstart\n"
         "Train a tiny model on the built-in synthetic data (no download), evaluate it, "
-        "reconstruct new 2D keypoints in 3D and look at the result. Run from the repository "
-        "root. The real run is `python -m c3dpo_jax.main --config=configs/synthetic.py "
-        "--workdir=runs/synthetic` (a few minutes); here we use the `:smoke` settings."
+        "reconstruct new 2D keypoints in 3D and look at the result. It runs from any "
+        "directory once the package is installed. The real run is "
+        "`python -m c3dpo_jax.main --config=configs/synthetic.py --workdir=runs/synthetic` "
+        "(a few minutes); here we use the `:smoke` settings."
     ),
     new_code_cell(
         "import tempfile\n"
@@ -28,13 +29,13 @@ CELLS = [
         "from IPython.display import Image, display\n"
         "\n"
         "from c3dpo_jax import evaluation, load, reconstruct, train, visualise\n"
-        "from c3dpo_jax.data import load_splits, synthetic\n"
-        "from configs import synthetic as synthetic_config"
+        "from c3dpo_jax.cli import get_config\n"
+        "from c3dpo_jax.data import load_splits, synthetic"
     ),
     new_markdown_cell(
         "## Train\nSmoke settings (32-wide networks, 2 blocks) and a few more steps."),
     new_code_cell(
-        "config = synthetic_config.get_config('smoke')\n"
+        "config = get_config('configs/synthetic.py:smoke')  # the bundled config\n"
         "config.train.num_steps = 40\n"
         "config.train.progress_bar = False\n"
         "workdir = tempfile.mkdtemp(prefix='c3dpo_quickstart_')\n"
