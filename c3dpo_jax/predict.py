@@ -73,7 +73,9 @@ def read_input(path: str) -> dict[str, np.ndarray]:
         return out
     from c3dpo_jax.data import json_dataset
 
-    data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"))
+    # One visible point is enough to lift (reconstruct accepts it); training needs two.
+    data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"),
+                              min_visible=1)
     out = {"kp": data.kp, "vis": data.vis, "index": np.arange(len(data))}
     optional = (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d))
     for name, value in optional:

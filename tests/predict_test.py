@@ -86,6 +86,24 @@ def test_input_errors_are_one_line_before_any_work(setup):
         predict.run("no/such/workdir", "no/such/input.json", str(root / "o.txt"))
 
 
+def test_release_json_entries_with_one_visible_point_are_lifted_as_reconstruct_does(
+        setup, tmp_path):
+    _, params, _, data = setup
+    vis = np.zeros(17)
+    vis[4] = 1.0
+    entries = [{"kp_loc": data.kp[0].T.tolist(), "kp_vis": vis.tolist()}]
+    path = tmp_path / "one.json"
+    path.write_text(json.dumps(entries))
+    got = predict.read_input(str(path))
+    assert got["vis"].sum() == 1
+    want = reconstruct(params, data.kp[:1], vis[None])
+    assert np.isfinite(want.shape_3d).all()
+    none = [{"kp_loc": data.kp[0].T.tolist(), "kp_vis": [0.0] * 17}]
+    path.write_text(json.dumps(none))
+    with pytest.raises(ValueError, match="visible"):
+        predict.read_input(str(path))
+
+
 def test_coco_reader_rejects_malformed_keypoints():
     with pytest.raises(ValueError, match=r"\[x, y, v\] \* N"):
         predict.read_coco({"annotations": [{"keypoints": [1, 2]}]})
