@@ -197,6 +197,8 @@ def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
     data = config.get("data", {})
     ident = {"model": config.get("model", {}), "optim": config.get("optim", {}),
              "data": {k: data[k] for k in _RUN_DATA_FIELDS if k in data}}
+    if "train_data_sha256" in config:  # what was read, so a file edited in place counts
+        ident["train_data_sha256"] = config["train_data_sha256"][:12]
     if data.get("train_path"):  # the files win over the source (data.load_splits)
         ident["data"].pop("source", None)
     elif data.get("source") == "release":

@@ -43,6 +43,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from c3dpo_jax import baselines, checkpoint, evaluation, model, tensorboard, validation
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
+from c3dpo_jax.data.dataset import fingerprint
 from c3dpo_jax.inference import evaluate_split, make_eval_fn, predict_split
 from c3dpo_jax.losses import LossConfig, make_loss_fn
 from c3dpo_jax.state import (
@@ -380,10 +381,13 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     train_data, test_data = load_splits(config.data)
     config = resolve_input_scale(config, train_data)
     spec = RunSpec.from_config(config)
-    checkpoint.check_workdir(workdir, config.to_dict())
+    # config.json also records what the training split held, so that resuming on a file
+    # edited in place under the same path is refused like a change of settings.
+    record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))
+    checkpoint.check_workdir(workdir, record)
     _check_data(train_data, spec.model, "train")
     _check_data(test_data, spec.model, "test")
-    checkpoint.save_config(workdir, config.to_dict())  # only once every check has passed
+    checkpoint.save_config(workdir, record)  # only once every check has passed
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(

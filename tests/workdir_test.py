@@ -101,3 +101,27 @@ def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_in
         assert (tmp_path / "run" / "config.json").read_bytes() == saved
     assert load(workdir).config.n_keypoints == 8
     assert json.loads(saved)["optim"]["optimizer"] == "sgd"
+
+
+def test_a_training_file_edited_in_place_is_refused_on_resume(tmp_path):
+    from c3dpo_jax.data import json_dataset, synthetic
+
+    data = synthetic.make_split(64, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.0,
+                                noise=0.0, perspective=False, shape_seed=0, seed=3)
+    train_path, test_path = str(tmp_path / "train.json"), str(tmp_path / "test.json")
+    json_dataset.save(data, train_path)
+    json_dataset.save(data, test_path)
+    files = {"data.train_path": train_path, "data.test_path": test_path}
+    workdir = str(tmp_path / "run")
+    train.train_and_evaluate(_config(**files), workdir)
+    recorded = checkpoint.load_config(workdir)["train_data_sha256"]
+    train.train_and_evaluate(_config(**files), workdir)  # same file: resumes (re-evaluates)
+    with open(train_path) as f:
+        obj = json.load(f)
+    entries = obj["data"] if isinstance(obj, dict) else obj
+    entries[5]["kp_loc"][0][2] += 0.25  # one visible coordinate, same path
+    with open(train_path, "w") as f:
+        json.dump(obj, f)
+    with pytest.raises(ValueError, match="train_data_sha256: '[0-9a-f]{12}' in the checkpoint"):
+        train.train_and_evaluate(_config(**files), workdir)
+    assert checkpoint.load_config(workdir)["train_data_sha256"] == recorded  # untouched

@@ -10,6 +10,7 @@ evaluation protocol, and ``image_path (M,)`` strings when the source names image
 """
 
 import dataclasses
+import hashlib
 
 import numpy as np
 from absl import logging
@@ -71,6 +72,17 @@ class KeypointData:
         if self.intrinsics is not None:
             out["intrinsics"] = self.intrinsics.astype(np.float32)
         return out
+
+
+def fingerprint(data: KeypointData) -> str:
+    """sha256 (hex) of what training reads from a split: ``model_inputs``' arrays (hidden
+    points zeroed, so what a file holds there does not count) in a fixed order."""
+    digest = hashlib.sha256()
+    for name, value in sorted(data.model_inputs().items()):
+        array = np.ascontiguousarray(value)
+        digest.update(f"{name}{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0) -> float:

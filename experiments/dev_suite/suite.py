@@ -98,8 +98,8 @@ def make_data(name: str, data_root: str, out: str) -> dict:
                 raise app.UsageError(f"{path} not found (--data_root)")
             x = importers.load_sequence(path)
             kw = {} if name in NRSFM else dict(
-                views_per_frame=3, clip=importers.load_clips(path), hold_out=MOCAP.get(name, "blocks"),
-                n_blocks=5)
+                views_per_frame=3, clip=importers.load_clips(path),
+                hold_out=MOCAP.get(name, "blocks"), n_blocks=5)
             train, test = importers.views_from_sequence(x, seed=0, name=name, **kw)
             protocol = "default"
         os.makedirs(os.path.dirname(info_path), exist_ok=True)
