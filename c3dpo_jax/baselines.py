@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """(M, 3, 3) rotations minimising ||R src_m - dst_m||, no reflections.
 
     ``src`` is (M, N, 3); ``dst`` is (N, 3) or (M, N, 3)."""
@@ -43,7 +43,7 @@ def procrustes_mean_shape(kp3d: np.ndarray, iters: int = 5, max_samples: int = 5
     x = x - x.mean(1, keepdims=True)
     ref = x[0]
     for _ in range(iters):
-        rot = _kabsch(x, ref)
+        rot = kabsch(x, ref)
         aligned = np.einsum("mij,mnj->mni", rot, x)
         ref = aligned.mean(0)
     return ref
@@ -227,7 +227,7 @@ def pca_shape_basis(kp3d: np.ndarray, n_basis: int, max_samples: int = 5000) -> 
     mean = procrustes_mean_shape(kp3d, max_samples=max_samples)
     x = kp3d[:max_samples].astype(np.float64)
     x = x - x.mean(1, keepdims=True)
-    aligned = np.einsum("mij,mnj->mni", _kabsch(x, mean), x)
+    aligned = np.einsum("mij,mnj->mni", kabsch(x, mean), x)
     dev = (aligned - mean).reshape(len(x), -1)
     _, sing, vt = np.linalg.svd(dev, full_matrices=False)
     eig = np.zeros(dev.shape[1])
@@ -281,7 +281,7 @@ def oracle_mean_shape(mean_shape: np.ndarray, kp3d: np.ndarray, vis: np.ndarray)
     src_mean = (mean_shape[None] * w).sum(1, keepdims=True) / count
     src = (mean_shape[None] - src_mean) * w
     dst = (kp3d - gt_mean) * w
-    rot = _kabsch(src, dst)
+    rot = kabsch(src, dst)
     return np.einsum("mij,mnj->mni", rot, mean_shape[None] - src_mean) + gt_mean
 
 

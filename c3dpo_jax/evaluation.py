@@ -15,6 +15,7 @@ the better of the two is kept (per sample); stress is invariant to the flip.
 
 import numpy as np
 
+from c3dpo_jax import baselines
 from c3dpo_jax.data.dataset import KeypointData
 
 
@@ -127,8 +128,29 @@ def reprojection_error(kp_reprojected: np.ndarray, data: KeypointData) -> float:
     return float((dist * data.vis).sum() / max(data.vis.sum(), 1.0))
 
 
+def mirrored_fraction(shape_canonical: np.ndarray, max_samples: int = 5000) -> float:
+    """Fraction of views whose canonical shape is, up to a rotation, closer to the mirror
+    image of the views' mean shape than to the mean shape itself. Needs no 3D ground truth.
+
+    A view and its depth mirror image fit the same 2D points; a model that gives every view
+    one handedness scores 0, one that tosses a coin per view about 0.5 (shapes with a mirror
+    symmetry score near 0.5 whatever the model does). On human bodies a coin toss comes with
+    a degenerate factorisation whose 3D error rises as training goes on
+    (experiments/dev_suite). ``shape_canonical (M, N, 3)``; the first ``max_samples`` count.
+    """
+    x = np.asarray(shape_canonical[:max_samples], np.float64)
+    x = x - x.mean(1, keepdims=True)
+    mean = baselines.procrustes_mean_shape(x, max_samples=max_samples)
+
+    def fit(shapes):  # RMS distance to the mean after the best proper rotation
+        rot = baselines.kabsch(shapes, mean)
+        return np.sqrt(((np.einsum("mij,mnj->mni", rot, shapes) - mean) ** 2).sum(-1).mean(-1))
+
+    return float(np.mean(fit(x * np.array([1.0, 1.0, -1.0])) < fit(x)))
+
+
 def format_table(
-    rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection")
+    rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
 ) -> str:
     """Plain-text table: one row per method, one column per metric ("-" where absent)."""
     keys = [k for k in keys if any(k in res for res in rows.values())]

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from c3dpo_jax import evaluation
 from c3dpo_jax.data import KeypointData
@@ -112,3 +113,26 @@ def test_errors_of_visible_and_hidden_points_are_split_after_the_flip():
     assert out["mpjpe_hidden"] == pytest.approx(0.3 * 3 / 6)
     assert out["mpjpe_visible"] == pytest.approx(0.4 / 9)
     assert evaluation.mpjpe_by_visibility(gt, _data(gt)) == {}
+
+
+def _rotations(rng, m):
+    q = rng.normal(size=(m, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return Rotation.from_quat(q).as_matrix()
+
+
+def test_mirrored_fraction_counts_the_views_of_the_other_handedness():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(12, 3))  # a generic (chiral) point set
+    m = 40
+    shapes = base + 0.02 * rng.normal(size=(m, 12, 3))  # small deformations
+    shapes = np.einsum("mij,mnj->mni", _rotations(rng, m), shapes)  # any orientation
+    assert evaluation.mirrored_fraction(shapes) == 0.0
+    flip = np.zeros(m, bool)
+    flip[rng.choice(m, 10, replace=False)] = True
+    # A reflection through any plane, then a rotation: the mirror image of the shape.
+    mixed = np.where(flip[:, None, None], shapes * np.array([-1.0, 1.0, 1.0]), shapes)
+    mixed = np.einsum("mij,mnj->mni", _rotations(rng, m), mixed)
+    got = evaluation.mirrored_fraction(mixed)
+    assert got in (10 / 40, 30 / 40)  # which handedness is the majority's is arbitrary
+    assert evaluation.mirrored_fraction(mixed[~flip]) == 0.0

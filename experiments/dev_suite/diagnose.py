@@ -71,7 +71,7 @@ def _oracle(shapes: np.ndarray, gt: np.ndarray) -> np.ndarray:
     for sign in (1.0, -1.0):
         s = shapes * np.array([1.0, 1.0, sign])
         s = s - s.mean(1, keepdims=True)
-        rot = baselines._kabsch(s, gt)
+        rot = baselines.kabsch(s, gt)
         errs.append(np.linalg.norm(np.einsum("mij,mnj->mni", rot, s) - gt, axis=-1).mean(1))
     return np.minimum(*errs)
 
@@ -93,7 +93,7 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: floa
         frames = canon[:m].reshape(-1, views_per_frame, *canon.shape[1:])
         out["canon_view_spread"] = _rms(frames - frames.mean(1, keepdims=True)) / _rms(canon)
     mean = baselines.procrustes_mean_shape(canon, max_samples=len(canon))
-    rot = baselines._kabsch(canon, mean)
+    rot = baselines.kabsch(canon, mean)
     aligned = np.einsum("mij,mnj->mni", rot, canon)
     before, after = np.mean((canon - mean) ** 2), np.mean((aligned - mean) ** 2)
     out["canon_rotation_share"] = float(1 - after / max(before, 1e-12))

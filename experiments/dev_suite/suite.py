@@ -26,7 +26,9 @@ written to ``OUT/VARIANT.md``) gives per dataset the mean (and spread) over seed
 baseline (the training mean shape, best rigid fit to each view) and zero depth; C3DPO after
 2, 5 and 10 minutes of training (each run's own clock: one core, other runs on the other) and
 at the end, also without the protocol's per-view depth flip (close to the flipped value when
-the depth sign is the same for every view, as a user without 3D ground truth needs); the best
+the depth sign is the same for every view, as a user without 3D ground truth needs) and the
+fraction of test views whose canonical shape has the other handedness
+(``evaluation.mirrored_fraction``, from the 2D views alone); the best
 point of the evaluation curve; the worst seed's final / best ratio (1.0:
 no degradation) and the worst seed's baseline / final ratio (> 1: better than the baseline).
 """
@@ -208,6 +210,7 @@ def summarise(workdir: str, base: dict[str, float]) -> dict:
     final = res["final"]["mpjpe"]
     row = {f"{m} min": at_minutes(res["history"], res["final"], m) for m in MINUTES}
     row.update(end=final, no_flip=res["final"]["mpjpe_orig"], best=min(curve),
+               mirrored=res["final"].get("mirrored", float("nan")),  # runs before it: "-"
                final_over_best=final / min(curve),
                steps=res["final"]["step"], train_s=res["final"].get("train_s", float("nan")),
                baseline=base[BASELINE], one_shot=base[ONE_SHOT],
@@ -231,8 +234,9 @@ def _fmt(values: list[float]) -> str:
 def table(out: str, variant: str, datasets, seeds) -> str:
     head = ["dataset", "seeds", "rigid baseline", "one-shot rigid fit", "zero depth",
             *(f"{m} min" for m in MINUTES),
-            "end", "end, no flip", "best on curve", "final / best (worst seed)",
-            "better rigid fit / final (worst seed)", "steps, train min"]
+            "end", "end, no flip", "mirrored (2D only)", "best on curve",
+            "final / best (worst seed)", "better rigid fit / final (worst seed)",
+            "steps, train min"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for d in datasets:
         done = [w for s in seeds if is_finished(w := run_dir(out, variant, d, s))]
@@ -243,7 +247,8 @@ def table(out: str, variant: str, datasets, seeds) -> str:
         col = {k: [r[k] for r in rows] for k in rows[0]}
         cells = [d, str(len(rows)), _fmt(col["baseline"][:1]), _fmt(col["one_shot"][:1]),
                  _fmt(col["zero_depth"][:1]),
-                 *(_fmt(col[f"{m} min"]) for m in MINUTES), _fmt(col["end"]), _fmt(col["no_flip"]),
+                 *(_fmt(col[f"{m} min"]) for m in MINUTES), _fmt(col["end"]),
+                 _fmt(col["no_flip"]), _fmt(col["mirrored"]),
                  _fmt(col["best"]),
                  f"{max(col['final_over_best']):.2f}", f"{min(col['baseline_over_final']):.2f}x",
                  f"{int(np.mean(col['steps']))}, {np.mean(col['train_s']) / 60:.1f}"]

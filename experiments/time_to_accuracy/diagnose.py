@@ -49,7 +49,7 @@ def oracle_rotation(shapes: np.ndarray, kp3d: np.ndarray) -> np.ndarray:
     aligned = []
     for src in (shapes, shapes * np.array([1.0, 1.0, -1.0])):
         src = src - src.mean(1, keepdims=True)
-        rot = baselines._kabsch(src, kp3d - dst_mean)
+        rot = baselines.kabsch(src, kp3d - dst_mean)
         aligned.append(np.einsum("mij,mnj->mni", rot, src) + dst_mean)
     err = [np.linalg.norm(a - kp3d, axis=-1).mean(1) for a in aligned]
     return np.where((err[1] < err[0])[:, None, None], aligned[1], aligned[0])
@@ -62,7 +62,7 @@ def pca_oracle_fit(basis: baselines.ShapeBasis, kp3d: np.ndarray, n_iters: int =
     flat = basis.basis.reshape(len(basis.basis), -1)  # (D, 3N), orthonormal rows
     fit = np.broadcast_to(basis.mean, gt.shape)
     for _ in range(n_iters):
-        rot = baselines._kabsch(gt, fit)  # truth -> model frame
+        rot = baselines.kabsch(gt, fit)  # truth -> model frame
         aligned = np.einsum("mij,mnj->mni", rot, gt)
         coef = (aligned - basis.mean).reshape(len(gt), -1) @ flat.T
         fit = basis.mean + (coef @ flat).reshape(gt.shape)
