@@ -45,8 +45,9 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     assert (info["n_train"], info["n_test"]) == (48 * 3, 12 * 3)
     row = next(line for line in proc.stdout.splitlines() if line.startswith("| cmu131"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert len(cells) == 14 and cells[1] == "1"
-    assert all(c != "-" and "nan" not in c for c in cells)
+    assert len(cells) == 15 and cells[1] == "1"
+    assert all(c != "-" and "nan" not in c for c in cells)  # the run reports "mirrored" too
+    assert 0.0 <= float(cells[10]) <= 1.0
     assert (out / "lr.md").read_text().count("| cmu131 |") == 1
     # A finished run is not run again.
     again = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path),
