@@ -17,8 +17,20 @@ import tempfile
 
 import jax
 import pytest
+from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+# Property tests (tests/property_test.py): the same examples on every run (derandomised,
+# no example database written into the clone), no per-example deadline (the first example
+# of a test compiles), a budget that keeps the suite within its time.
+settings.register_profile(
+    "c3dpo", derandomize=True, database=None, deadline=None, max_examples=60,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+# HYPOTHESIS_PROFILE=thorough: fresh random draws, many more of them (a search, not CI).
+settings.register_profile("thorough", parent=settings.get_profile("c3dpo"), derandomize=False,
+                          max_examples=1000)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "c3dpo"))
 
 
 _MADE_CACHE_DIR = None  # set in the process that made the directory (it removes it)

@@ -98,6 +98,8 @@ def check_magnitude(points: np.ndarray, mask: np.ndarray, field: str, what: str,
     """Coordinates of ``points (M, N, C)`` at ``mask (M, N)`` that lie more than
     ``OUTLIER_FACTOR`` times the file's typical point-to-median distance from their
     entry's median point (coordinate-wise), or beyond ``MAX_ABS``, are problems."""
+    if points.size == 0:  # no entry holds a point: nothing to compare
+        return
     mask = mask & np.isfinite(points).all(-1)
     pts = points.astype(np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
