@@ -2,7 +2,9 @@
 
 Layout of a workdir::
 
-    workdir/config.json          the resolved config (model settings for ``load``)
+    workdir/config.json          the resolved config (model settings for ``load``), the
+                                 training split's fingerprint and the software that
+                                 trained it (``software_record``)
     workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree (or of the
                                  variables alone: ``save_variables``), and
                                  c3dpo_sha256.json: the sha256 of each of its files
@@ -19,8 +21,11 @@ checked for readability and finite values only.
 """
 
 import hashlib
+import importlib.metadata
 import json
 import os
+import platform
+import subprocess
 from typing import Any
 
 import jax
@@ -180,6 +185,51 @@ def restore_or_init(manager: ocp.CheckpointManager, state):
 def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
     """Saves if the manager's interval says so (or ``force``); returns whether it did."""
     return manager.save(step, args=ocp.args.StandardSave(state), force=force)
+
+
+def _git(*args: str) -> str | None:
+    """Output of ``git ARGS`` run in this package's directory, or None (no git, no repo)."""
+    try:
+        out = subprocess.run(["git", "-C", os.path.dirname(os.path.abspath(__file__)), *args],
+                             capture_output=True, text=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def software_record() -> dict[str, Any]:
+    """The software a run is made with: the package's version, the git commit of its source
+    when it runs from a git checkout that tracks it (``git_dirty``: the package's tracked
+    files differ from that commit), and the versions of Python and the numerical stack."""
+    record: dict[str, Any] = {}
+    for name in ("c3dpo_jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint"):
+        try:
+            record[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            record[name] = None
+    record["python"] = platform.python_version()
+    tracked = _git("ls-files", "--error-unmatch", os.path.basename(__file__)) is not None
+    commit = _git("rev-parse", "HEAD") if tracked else None
+    record["git_commit"] = commit
+    record["git_dirty"] = None if commit is None else bool(
+        _git("status", "--porcelain", "--untracked-files=no", "--", "."))
+    return record
+
+
+def software_history(workdir: str) -> list[dict[str, Any]]:
+    """The software records of a run: those of the workdir's checkpoints' run, plus this
+    process's when it differs from the last (a resumption by other software is warned
+    about in one line). A workdir without checkpoints starts a new history."""
+    saved = load_config(workdir) if has_checkpoint(workdir) else None
+    history = list((saved or {}).get("software", []))
+    current = software_record()
+    if history and history[-1] != current:
+        changed = [f"{k} {history[-1].get(k)} -> {v}" for k, v in current.items()
+                   if history[-1].get(k) != v]
+        logging.warning("resuming a run begun with other software: %s", "; ".join(changed))
+    if not history or history[-1] != current:
+        history.append(current)
+    return history
 
 
 def save_config(workdir: str, config: dict[str, Any]) -> None:

@@ -96,6 +96,7 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
     """
     config = json.loads(json.dumps(dict(config_dict or {}), default=list))
     config["model"] = params.config.to_dict()
+    config["software"] = [checkpoint.software_record()]  # what wrote it (e.g. a conversion)
     os.makedirs(workdir, exist_ok=True)
     checkpoint.save_config(workdir, config)
     checkpoint.save_variables(workdir, params.variables)

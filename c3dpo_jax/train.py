@@ -385,6 +385,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     # edited in place under the same path is refused like a change of settings.
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))
     checkpoint.check_workdir(workdir, record)
+    record["software"] = checkpoint.software_history(workdir)
     _check_data(train_data, spec.model, "train")
     _check_data(test_data, spec.model, "test")
     checkpoint.save_config(workdir, record)  # only once every check has passed

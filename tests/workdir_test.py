@@ -125,3 +125,35 @@ def test_a_training_file_edited_in_place_is_refused_on_resume(tmp_path):
     with pytest.raises(ValueError, match="train_data_sha256: '[0-9a-f]{12}' in the checkpoint"):
         train.train_and_evaluate(_config(**files), workdir)
     assert checkpoint.load_config(workdir)["train_data_sha256"] == recorded  # untouched
+
+
+def _git(*args):
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run(["git", "-C", root, *args], capture_output=True, text=True)
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def test_the_workdir_records_the_software_and_a_resumption_by_other_software(
+        tmp_path, monkeypatch):
+    import importlib.metadata
+
+    workdir = str(tmp_path / "run")
+    train.train_and_evaluate(_config(), workdir)
+    (record,) = checkpoint.load_config(workdir)["software"]
+    assert record["c3dpo_jax"] == importlib.metadata.version("c3dpo_jax")
+    assert record["jax"] == importlib.metadata.version("jax")
+    assert record["git_commit"] == _git("rev-parse", "HEAD")  # None outside a git checkout
+    if record["git_commit"] is not None:
+        dirty = _git("status", "--porcelain", "--untracked-files=no", "--", "c3dpo_jax")
+        assert record["git_dirty"] == bool(dirty)
+    train.train_and_evaluate(_config(), workdir)  # same software: one record
+    assert checkpoint.load_config(workdir)["software"] == [record]
+    other = dict(record, c3dpo_jax="9.9.9")
+    monkeypatch.setattr(checkpoint, "software_record", lambda: other)
+    train.train_and_evaluate(_config(**{"train.num_steps": 20}), workdir)
+    assert checkpoint.load_config(workdir)["software"] == [record, other]
+    fresh = str(tmp_path / "fresh")  # a new workdir starts its own history
+    train.train_and_evaluate(_config(), fresh)
+    assert checkpoint.load_config(fresh)["software"] == [other]
