@@ -1,5 +1,5 @@
-"""The commands' plumbing (c3dpo_jax/cli.py) and the package as pip builds it: bundled configs
-found from any directory, no top-level ``configs`` in the wheel, quiet logs, one-line errors."""
+"""The commands' plumbing (c3dpo_jax/cli.py): bundled configs found from any directory, quiet
+logs, one-line errors. The wheel and its installation: tests/install_test.py."""
 
 import ast
 import importlib.util
@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import zipfile
 
 import pytest
 from absl import flags
@@ -156,34 +155,6 @@ def test_pyproject_ships_configs_inside_the_package_and_the_console_scripts():
         assert function in {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
     with open(os.path.join(ROOT, "LICENSE")) as f:
         assert f.readline().strip() == "MIT License" and "the c3dpo_jax authors" in f.read()
-
-
-def test_wheel_holds_the_configs_under_the_package_and_no_top_level_configs(tmp_path):
-    pytest.importorskip("setuptools", minversion="77")  # PEP 639 license fields
-    src = tmp_path / "src"
-    src.mkdir()
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
-        shutil.copy(os.path.join(ROOT, name), src)
-    for name in ("c3dpo_jax", "configs"):
-        shutil.copytree(os.path.join(ROOT, name), src / name,
-                        ignore=shutil.ignore_patterns("__pycache__"))
-    subprocess.run([sys.executable, "-c", "from setuptools import build_meta as b; "
-                    f"b.build_wheel({str(tmp_path / 'dist')!r})"],
-                   cwd=src, check=True, capture_output=True, timeout=120)
-    (wheel,) = os.listdir(tmp_path / "dist")
-    with zipfile.ZipFile(tmp_path / "dist" / wheel) as z:
-        names = z.namelist()
-        entry_points = z.read("c3dpo_jax-0.1.0.dist-info/entry_points.txt").decode()
-        top_level = z.read("c3dpo_jax-0.1.0.dist-info/top_level.txt").decode().split()
-    assert top_level == ["c3dpo_jax"]
-    assert {n.split("/")[0] for n in names} == {"c3dpo_jax", "c3dpo_jax-0.1.0.dist-info"}
-    configs = sorted(n for n in os.listdir(os.path.join(ROOT, "configs")) if n.endswith(".py"))
-    assert sorted(n.split("/")[-1] for n in names if n.startswith("c3dpo_jax/configs/")) == configs
-    assert "c3dpo_jax-0.1.0.dist-info/licenses/LICENSE" in names
-    for script in ("c3dpo-train = c3dpo_jax.main:cli_main",
-                   "c3dpo-predict = c3dpo_jax.predict:cli_main",
-                   "c3dpo-import = c3dpo_jax.data.importers:main"):
-        assert script in entry_points
 
 
 def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_errors(
