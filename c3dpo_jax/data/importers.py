@@ -1,6 +1,6 @@
 """Users' own keypoints -> the release's JSON format (numpy only; scipy for .mat).
 
-- 3D sequences (``.npz`` with ``X`` (F, 3, K), as in ``shared/data/nrsfm``, or ``.mat``
+- 3D sequences (``.npz`` with ``X`` (F, 3, K), as the classic NRSfM sequences, or ``.mat``
   with ``X`` (F, 3, K), (F, K, 3) or (3F, K)): each frame is centred, the sequence is
   scaled to unit RMS radius, and seen by ``views_per_frame`` random cameras; train and
   test take different blocks of frames, so test poses are unseen.
