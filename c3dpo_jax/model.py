@@ -11,6 +11,7 @@ l2), in-plane equivariance (eq. 6, l3).
 
 import contextlib
 import dataclasses
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -154,6 +155,18 @@ def _precision(cfg: ModelConfig):
     return jax.default_matmul_precision(cfg.matmul_precision)
 
 
+def _under_precision(fn):
+    """Runs ``fn(..., cfg)`` (``cfg`` its last argument) under ``_precision(cfg)``."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        cfg = kwargs["cfg"] if "cfg" in kwargs else args[-1]
+        with _precision(cfg):
+            return fn(*args, **kwargs)
+
+    return wrapped
+
+
 def make_network(cfg: ModelConfig) -> C3DPONet:
     # Without independent_phi_for_aug both in-plane copies share BatchNorm statistics.
     phi_axes = "batch" if cfg.independent_phi_for_aug else ("batch", "copy")
@@ -229,6 +242,7 @@ def _reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
     return proj, depth, jnp.sum((proj - kp_norm) ** 2, axis=-1)
 
 
+@_under_precision
 def forward_train(
     variables: Variables,
     kp: Kp2,
@@ -245,20 +259,6 @@ def forward_train(
       Huber, unmasked), per-sample canonicalisation errors ``canon`` (S,) (masked
       point means) and diagnostics; the updated BatchNorm statistics.
     """
-    with _precision(cfg):
-        return _forward_train(variables, kp, vis, class_mask, intrinsics, key, cfg)
-
-
-def _forward_train(
-    variables: Variables,
-    kp: Kp2,
-    vis: Vis,
-    class_mask: Float[Array, " N"],
-    intrinsics: Float[Array, "3 3"] | None,
-    key: jax.Array,
-    cfg: ModelConfig,
-) -> tuple[dict[str, Array], dict[str, Any]]:
-    """``forward_train`` under the precision context."""
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
     k_aug, k_eq, k_canon = jax.random.split(key, 3)
@@ -325,6 +325,7 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
+@_under_precision
 def forward_eval(
     variables: Variables,
     kp: Kp2,
@@ -335,19 +336,6 @@ def forward_eval(
 ) -> Prediction:
     """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi);
     the fields of the ``Prediction`` are documented there."""
-    with _precision(cfg):
-        return _forward_eval(variables, kp, vis, class_mask, intrinsics, cfg)
-
-
-def _forward_eval(
-    variables: Variables,
-    kp: Kp2,
-    vis: Vis,
-    class_mask: Float[Array, " N"],
-    intrinsics: Float[Array, "3 3"] | None,
-    cfg: ModelConfig,
-) -> Prediction:
-    """``forward_eval`` under the precision context."""
     net = make_network(cfg)
     kp_cal, kp_norm, centre = _normalised_input(cfg, kp, vis, intrinsics)
     phi_out = net.apply(variables, kp_norm, vis, False, method="phi")

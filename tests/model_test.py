@@ -106,3 +106,25 @@ def test_perspective_model_requires_intrinsics():
 def test_unknown_model_options_are_rejected():
     with pytest.raises(ValueError, match="n_keypoint"):
         model.ModelConfig.from_dict({"n_keypoint": 3})
+
+
+def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeypatch):
+    """The precision context is entered with the pass's own config, positional or keyword."""
+    seen = []
+    real = model._precision
+
+    def recording(cfg):
+        seen.append(cfg.matmul_precision)
+        return real(cfg)
+
+    monkeypatch.setattr(model, "_precision", recording)
+    cfg = dataclasses.replace(CFG, matmul_precision="highest")
+    variables = model.init_variables(jax.random.key(0), cfg)
+    _, batch = _batch()
+    model.forward_eval(variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None,
+                       cfg)
+    fn = partial(model.forward_train, variables, cfg=cfg)
+    keys = jax.random.split(jax.random.key(1), 6)
+    jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch")(
+        batch["kp"], batch["vis"], batch["class_mask"], None, keys)
+    assert seen == ["highest", "highest"]
