@@ -29,7 +29,7 @@ import numpy as np
 from absl import app, flags
 from ml_collections import config_flags
 
-from c3dpo_jax import inference, model, train
+from c3dpo_jax import device_data, inference, model, train
 from c3dpo_jax.state import create_train_state
 
 
@@ -123,12 +123,12 @@ def _peak_memory_mb() -> dict[str, float]:
 
 def _time_train(spec: train.RunSpec, data, steps: int,
                 chunk_steps: int = 1) -> dict[str, float]:
-    mesh = train.make_mesh() if jax.device_count() > 1 else None
+    mesh = device_data.make_mesh() if jax.device_count() > 1 else None
     chunk = jax.jit(train.make_train_chunk(spec.train_step(), spec.batch_size, mesh),
                     static_argnames="n_steps", donate_argnums=0)
     state = create_train_state(jax.random.key(0), spec.model, spec.optimizer())
     if mesh is not None:  # data parallel over every device, as train_and_evaluate does
-        state, data = train.replicate(state, mesh), train.replicate(data, mesh)
+        state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
     key = jax.random.key(1)
     t0 = time.perf_counter()
     compiled = chunk.lower(state, data, key, n_steps=chunk_steps).compile()

@@ -15,7 +15,7 @@ from functools import partial
 import jax
 import numpy as np
 
-from c3dpo_jax import evaluation, model
+from c3dpo_jax import baselines, evaluation, model
 from c3dpo_jax.data.dataset import KeypointData
 
 
@@ -86,3 +86,12 @@ def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig, 
     if data.kp3d is not None and protocol != "none":
         out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
     return out
+
+
+def evaluate_baselines(train: KeypointData, test: KeypointData, protocol: str) -> dict:
+    """Scores of the trivial baselines (orthographic data with 3D ground truth only)."""
+    if train.kp3d is None or test.kp3d is None or test.intrinsics is not None or protocol == "none":
+        return {}
+    mean_shape = baselines.procrustes_mean_shape(train.kp3d)
+    preds = baselines.predict(mean_shape, test.kp, test.vis)
+    return {name: evaluation.evaluate(p, test, protocol) for name, p in preds.items()}

@@ -11,7 +11,7 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
   from the device-resident ``data`` with ``fold_in(train_key, step)``, so the data
   order and all augmentations depend only on (seed, step): a resumed run replays an
   uninterrupted one exactly.
-- ``make_mesh`` / ``replicate``: data parallelism. With a mesh, the chunk constrains
+- Data parallelism (``device_data.make_mesh`` / ``replicate``): with a mesh, the chunk constrains
   each sampled batch to be split over the mesh's ``"data"`` axis while parameters,
   optimiser state and the training arrays stay replicated; XLA (GSPMD) partitions the
   vmapped step and turns BatchNorm's batch means and the gradient sums into
@@ -19,14 +19,14 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 - ``RunSpec.from_config(config)``: the frozen description of a run (model, optimiser,
   loss weights, batch size, step counts) that the loop, the benchmark and the
   experiments build their steps from.
-- ``train_and_evaluate(config, workdir, hooks)``: the loop (progress bar, metrics.jsonl,
-  orbax checkpoints and resume, evaluation every ``eval_every`` steps and at the end);
+- ``train_and_evaluate(config, workdir, hooks)``: the loop (progress bar, the run's records
+  of ``run_records``, orbax checkpoints and resume, evaluation every ``eval_every`` steps and
+  at the end, with the baselines of ``inference.evaluate_baselines``);
   ``Hooks`` lets experiments observe it and stop it early (e.g. at a time budget).
 """
 
 import dataclasses
 import importlib.util
-import json
 import os
 import signal
 import sys
@@ -36,15 +36,25 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from c3dpo_jax import baselines, checkpoint, evaluation, model, tensorboard, validation
+from c3dpo_jax import (
+    checkpoint,
+    device_data,
+    model,
+    run_records,
+    validation,
+)
 from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
 from c3dpo_jax.data.dataset import fingerprint
-from c3dpo_jax.inference import evaluate_split, make_eval_fn, predict_split
+from c3dpo_jax.inference import (
+    evaluate_baselines,
+    evaluate_split,
+    make_eval_fn,
+    predict_split,
+)
 from c3dpo_jax.losses import LossConfig, make_loss_fn
 from c3dpo_jax.state import (
     OptimConfig,
@@ -74,28 +84,6 @@ def make_train_step(model_cfg, loss_cfg, tx: optax.GradientTransformation, sched
     return train_step
 
 
-def sample_indices(data, key, batch_size: int):
-    """Indices drawn with replacement; class-balanced when ``data`` has class tables."""
-    n = data["vis"].shape[0]
-    if "class_start" not in data:
-        return jax.random.randint(key, (batch_size,), 0, n)
-    k_class, k_item = jax.random.split(key)
-    cls = jax.random.randint(k_class, (batch_size,), 0, data["class_start"].shape[0])
-    offset = jax.random.randint(k_item, (batch_size,), 0, data["class_count"][cls])
-    return data["class_start"][cls] + offset
-
-
-def make_mesh(n_devices: int | None = None) -> Mesh:
-    """A 1D mesh with axis ``"data"`` over the first ``n_devices`` devices (default all)."""
-    devices = jax.devices()[: n_devices or jax.device_count()]
-    return Mesh(np.array(devices), ("data",))
-
-
-def replicate(tree, mesh: Mesh):
-    """Copies every array of ``tree`` onto every device of ``mesh``."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
-
-
 def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
     """``chunk(state, data, train_key, n_steps)``: ``n_steps`` steps in one ``lax.scan``.
 
@@ -111,7 +99,7 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
 
         def body(state, _):
             k_idx, k_step = jax.random.split(jax.random.fold_in(train_key, state.step))
-            idx = sample_indices(data, k_idx, batch_size)
+            idx = device_data.sample_indices(data, k_idx, batch_size)
             batch = jax.tree.map(lambda a: a[idx], per_sample)
             if split is not None:
                 batch = jax.lax.with_sharding_constraint(batch, split)
@@ -128,15 +116,6 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
 predict = predict_split
 
 
-def baseline_results(train: KeypointData, test: KeypointData, protocol: str) -> dict:
-    """Scores of the trivial baselines (orthographic data with 3D ground truth only)."""
-    if train.kp3d is None or test.kp3d is None or test.intrinsics is not None or protocol == "none":
-        return {}
-    mean_shape = baselines.procrustes_mean_shape(train.kp3d)
-    preds = baselines.predict(mean_shape, test.kp, test.vis)
-    return {name: evaluation.evaluate(p, test, protocol) for name, p in preds.items()}
-
-
 def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str) -> None:
     if data.n_keypoints != model_cfg.n_keypoints:
         raise ValueError(
@@ -145,19 +124,6 @@ def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str) ->
         )
     if model_cfg.projection_type == "perspective" and data.intrinsics is None:
         raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
-
-
-def device_train_data(data: KeypointData, class_balanced: bool):
-    """Training arrays for the device; sorted by class with lookup tables if balanced."""
-    if class_balanced and data.group is not None:
-        data = data.subset(np.argsort(data.group, kind="stable"))
-        counts = np.bincount(data.group, minlength=len(data.group_names))
-        present = counts > 0
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        tables = {"class_start": starts[present].astype(np.int32),
-                  "class_count": counts[present].astype(np.int32)}
-        return jax.device_put(dict(data.model_inputs(), **tables))
-    return jax.device_put(data.model_inputs())
 
 
 def _next_stop(step: int, total: int, intervals) -> int:
@@ -174,69 +140,6 @@ def _progress_bar(**kwargs):
     else:
         from tqdm import tqdm
     return tqdm(**kwargs)
-
-
-class _MetricsWriter:
-    """Fetches chunk metrics (one chunk late, so the host never waits on the device),
-    checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events."""
-
-    def __init__(self, workdir: str, pbar):
-        self.path = os.path.join(workdir, "metrics.jsonl")
-        self.events = tensorboard.EventWriter(workdir)
-        self.pbar, self.pending, self.last_time = pbar, None, time.perf_counter()
-
-    def push(self, first_step: int, metrics) -> None:
-        self.flush()
-        self.pending = (first_step, metrics)
-
-    def flush(self) -> None:
-        if self.pending is None:
-            return
-        first_step, metrics = self.pending
-        self.pending = None
-        metrics = jax.device_get(metrics)
-        n = len(metrics["loss"])
-        bad = np.flatnonzero(~np.isfinite(metrics["loss"]))
-        if bad.size:
-            at = first_step + int(bad[0])
-            values = {k: float(v[bad[0]]) for k, v in metrics.items()}
-            raise FloatingPointError(f"loss is not finite at step {at}: {values}")
-        now = time.perf_counter()
-        record = {k: float(np.mean(v)) for k, v in metrics.items()}
-        record.update(step=first_step + n, steps_per_s=n / max(now - self.last_time, 1e-9))
-        self.last_time = now
-        with open(self.path, "a") as f:
-            f.write(json.dumps(record) + "\n")
-        self.events.scalars(record["step"], record)
-        self.pbar.update(n)
-        self.pbar.set_postfix(
-            loss=f"{record['loss']:.4f}",
-            repro=f"{record['loss/reprojection']:.4f}",
-            canon=f"{record['loss/canonicalisation']:.4f}",
-            refresh=False,
-        )
-        logging.log_every_n_seconds(logging.INFO, "step %d: %s", 30, record["step"], record)
-
-
-def _write_results(workdir: str, results: dict) -> None:
-    checkpoint.write_json(os.path.join(workdir, "eval_results.json"), results, indent=2)
-
-
-def _read_results(workdir: str) -> dict:
-    """The workdir's ``eval_results.json`` ({} when there is none yet, or with a warning
-    when it cannot be read: the evaluations so far are lost, not the run)."""
-    path = os.path.join(workdir, "eval_results.json")
-    if not os.path.exists(path):
-        return {}
-    try:
-        with open(path) as f:
-            results = json.load(f)
-        if not isinstance(results, dict):
-            raise ValueError("not a JSON object")
-        return results
-    except (ValueError, UnicodeDecodeError) as e:
-        logging.warning("%s cannot be read (%s): its evaluation history starts again", path, e)
-        return {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -302,7 +205,7 @@ def _data_parallel_mesh(config) -> Mesh | None:
                         config.train.batch_size, n)
         return None
     logging.info("data parallel over %d devices", n)
-    return make_mesh(n)
+    return device_data.make_mesh(n)
 
 
 class Interrupted(Exception):
@@ -337,19 +240,6 @@ class _StopSignals:
     def __exit__(self, *exc):
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
-
-
-def _trim_metrics(workdir: str, step: int) -> None:
-    """Drops ``metrics.jsonl`` records past ``step``: a resumed run replays those steps."""
-    path = os.path.join(workdir, "metrics.jsonl")
-    if not os.path.exists(path):
-        return
-    with open(path) as f:
-        lines = [line for line in f if line.strip()]
-    keep = [line for line in lines if json.loads(line).get("step", 0) <= step]
-    if len(keep) < len(lines):
-        with open(path, "w") as f:
-            f.writelines(keep)
 
 
 def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = None):
@@ -396,11 +286,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     step, total = int(state.step), spec.total_steps
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
-    _trim_metrics(workdir, step)
-    data = device_train_data(train_data, config.data.class_balanced)
+    run_records.trim_metrics(workdir, step)
+    data = device_data.device_train_data(train_data, config.data.class_balanced)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
-        state, data = replicate(state, mesh), replicate(data, mesh)
+        state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
     chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh),
                     static_argnames="n_steps", donate_argnums=0)
     eval_fn = jax.jit(make_eval_fn(spec.model))
@@ -411,11 +301,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint.
-    history = [h for h in _read_results(workdir).get("history", []) if h["step"] <= step]
+    history = [h for h in run_records.read_results(workdir).get("history", []) if h["step"] <= step]
     train_s = history[-1].get("train_s", 0.0) if history else 0.0
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
-    writer = _MetricsWriter(workdir, pbar)
+    writer = run_records.MetricsWriter(workdir, pbar)
     tic = time.perf_counter()
     with _StopSignals() as signals:
         while step < total:
@@ -440,7 +330,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                     history.append(evaluate(state, step))
                     logging.info("step %d: test %s", step,
                                  {k: v for k, v in history[-1].items() if k != "per_group"})
-                    _write_results(workdir, {"history": history})
+                    run_records.write_results(workdir, {"history": history})
                     writer.events.scalars(step, history[-1], prefix="test/")
                     if hooks.after_evaluation is not None:
                         hooks.after_evaluation(history[-1], state)
@@ -468,8 +358,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
     results = {"history": history, "final": final,
-               "baselines": baseline_results(train_data, test_data, protocol)}
-    _write_results(workdir, results)
+               "baselines": evaluate_baselines(train_data, test_data, protocol)}
+    run_records.write_results(workdir, results)
     writer.events.close()
     return results
 
@@ -487,7 +377,7 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
-    results = dict(_read_results(workdir), final=dict(step=step, **final),
-                   baselines=baseline_results(train_data, test_data, config.data.protocol))
-    _write_results(workdir, results)
+    results = dict(run_records.read_results(workdir), final=dict(step=step, **final),
+                   baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
+    run_records.write_results(workdir, results)
     return results

@@ -14,7 +14,7 @@ import pytest
 
 SCRIPT = textwrap.dedent("""
     import jax, numpy as np
-    from c3dpo_jax import model, train
+    from c3dpo_jax import device_data, model, train
     from c3dpo_jax.data import synthetic
     from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer
 
@@ -30,11 +30,11 @@ SCRIPT = textwrap.dedent("""
     step = train.make_train_step(cfg, train.LossConfig(), tx)
     key = jax.random.key(1)
     runs = {}
-    for name, mesh in (("one", None), ("four", train.make_mesh(4))):
+    for name, mesh in (("one", None), ("four", device_data.make_mesh(4))):
         state = create_train_state(jax.random.key(0), cfg, tx)
         dev = jax.device_put(data, jax.devices()[0])
         if mesh is not None:
-            state, dev = train.replicate(state, mesh), train.replicate(dev, mesh)
+            state, dev = device_data.replicate(state, mesh), device_data.replicate(dev, mesh)
         chunk = jax.jit(train.make_train_chunk(step, 32, mesh), static_argnames="n_steps")
         # 8 one-step calls: one compile per mesh (batches depend only on the step, so
         # this is the trajectory of an 8-step chunk).

@@ -9,7 +9,7 @@ import numpy as np
 import optax
 import pytest
 
-from c3dpo_jax import model, train
+from c3dpo_jax import device_data, model, run_records, train
 from c3dpo_jax.data import KeypointData, synthetic
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
 from configs import default
@@ -142,8 +142,8 @@ def test_class_balanced_sampling_draws_classes_uniformly():
     group = np.array([0] * 90 + [1] * 10)
     data = KeypointData(kp=np.zeros((100, 3, 2)), vis=np.ones((100, 3)), group=group,
                         group_names=("a", "b"))
-    dev = train.device_train_data(data, class_balanced=True)
-    idx = np.asarray(train.sample_indices(dev, jax.random.key(0), 20000))
+    dev = device_data.device_train_data(data, class_balanced=True)
+    idx = np.asarray(device_data.sample_indices(dev, jax.random.key(0), 20000))
     assert abs((idx >= 90).mean() - 0.5) < 0.02
     assert idx.min() >= 0 and idx.max() < 100
 
@@ -152,7 +152,7 @@ def test_non_finite_loss_stops_training_and_names_the_step(tmp_path):
     class Bar:
         def update(self, n): ...
         def set_postfix(self, **kw): ...
-    writer = train._MetricsWriter(str(tmp_path), Bar())
+    writer = run_records.MetricsWriter(str(tmp_path), Bar())
     ok = {"loss": np.ones(3), "loss/reprojection": np.ones(3), "loss/canonicalisation": np.ones(3)}
     writer.push(100, ok)
     writer.push(103, dict(ok, loss=np.array([1.0, np.nan, 2.0])))
@@ -289,11 +289,11 @@ def test_cosine_schedule_matches_its_formula():
 
 
 def test_results_file_is_replaced_whole_and_a_damaged_one_only_warns(tmp_path, caplog):
-    train._write_results(str(tmp_path), {"history": [{"step": 5}]})
+    run_records.write_results(str(tmp_path), {"history": [{"step": 5}]})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval_results.json"]
-    assert train._read_results(str(tmp_path)) == {"history": [{"step": 5}]}
+    assert run_records.read_results(str(tmp_path)) == {"history": [{"step": 5}]}
     text = (tmp_path / "eval_results.json").read_text()
     (tmp_path / "eval_results.json").write_text(text[: len(text) // 2])  # a kill mid-write
     with caplog.at_level("WARNING"):
-        assert train._read_results(str(tmp_path)) == {}
+        assert run_records.read_results(str(tmp_path)) == {}
     assert "eval_results.json cannot be read" in caplog.text

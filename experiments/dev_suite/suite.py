@@ -175,13 +175,13 @@ def at_minutes(history: list[dict], final: dict, minutes: float) -> float:
 
 
 def baseline_scores(name: str, out: str) -> dict[str, float]:
-    """Test MPJPE of the baselines of ``train.baseline_results`` (the best rigid fit of the
+    """Test MPJPE of the baselines of ``inference.evaluate_baselines`` (the best rigid fit of the
     training mean shape, zero depth) on a suite dataset, cached with the hash of the
     baselines' source so that a change of ``c3dpo_jax.baselines`` recomputes them."""
     import hashlib
     import inspect
 
-    from c3dpo_jax import baselines, evaluation, train
+    from c3dpo_jax import baselines, evaluation, inference
     from c3dpo_jax.data import json_dataset
 
     digest = hashlib.sha1(inspect.getsource(baselines).encode()).hexdigest()[:12]
@@ -193,7 +193,7 @@ def baseline_scores(name: str, out: str) -> dict[str, float]:
             return cached["mpjpe"]
     data = make_data(name, FLAGS.data_root, out)
     train_data, test = json_dataset.load(data["train"]), json_dataset.load(data["test"])
-    res = train.baseline_results(train_data, test, data["protocol"])
+    res = inference.evaluate_baselines(train_data, test, data["protocol"])
     scores = {k: v["mpjpe"] for k, v in res.items()}
     one_shot = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train_data.kp3d),
                                         test.kp, test.vis, n_iters=0)

@@ -41,7 +41,7 @@ import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, train  # noqa: E402
+from c3dpo_jax import baselines, device_data, evaluation, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
 from c3dpo_jax.state import create_train_state  # noqa: E402
 from configs import default, release  # noqa: E402
@@ -168,7 +168,7 @@ def run() -> dict:
     chunk = jax.jit(train.make_train_chunk(train_step, c.train.batch_size),
                     static_argnames="n_steps", donate_argnums=0)
     eval_fn = jax.jit(train.make_eval_fn(model_cfg))
-    data = train.device_train_data(train_data, False)
+    data = device_data.device_train_data(train_data, False)
     n_chunk = FLAGS.chunk_steps or (2 if FLAGS.recipe == "official" else 20)
     replay = FLAGS.steps_per_s > 0
 

@@ -1,0 +1,48 @@
+"""Training data on the devices: placement, the data-parallel mesh, and the sampling of
+each step's batch (inside the compiled chunk, ``train.make_train_chunk``).
+
+Glossary: M samples, B batch. The training arrays stay on the device for the whole run;
+every step draws its ``B`` indices with replacement (as the release), class-balanced when
+the arrays carry the class tables that ``device_train_data`` adds.
+"""
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from c3dpo_jax.data import KeypointData
+
+
+def device_train_data(data: KeypointData, class_balanced: bool):
+    """Training arrays for the device; sorted by class with lookup tables if balanced."""
+    if class_balanced and data.group is not None:
+        data = data.subset(np.argsort(data.group, kind="stable"))
+        counts = np.bincount(data.group, minlength=len(data.group_names))
+        present = counts > 0
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        tables = {"class_start": starts[present].astype(np.int32),
+                  "class_count": counts[present].astype(np.int32)}
+        return jax.device_put(dict(data.model_inputs(), **tables))
+    return jax.device_put(data.model_inputs())
+
+
+def sample_indices(data, key, batch_size: int):
+    """Indices drawn with replacement; class-balanced when ``data`` has class tables."""
+    n = data["vis"].shape[0]
+    if "class_start" not in data:
+        return jax.random.randint(key, (batch_size,), 0, n)
+    k_class, k_item = jax.random.split(key)
+    cls = jax.random.randint(k_class, (batch_size,), 0, data["class_start"].shape[0])
+    offset = jax.random.randint(k_item, (batch_size,), 0, data["class_count"][cls])
+    return data["class_start"][cls] + offset
+
+
+def make_mesh(n_devices: int | None = None) -> Mesh:
+    """A 1D mesh with axis ``"data"`` over the first ``n_devices`` devices (default all)."""
+    devices = jax.devices()[: n_devices or jax.device_count()]
+    return Mesh(np.array(devices), ("data",))
+
+
+def replicate(tree, mesh: Mesh):
+    """Copies every array of ``tree`` onto every device of ``mesh``."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))

@@ -1,0 +1,90 @@
+"""A run's records in its workdir: ``metrics.jsonl`` and TensorBoard events (one record per
+logged chunk of steps, ``MetricsWriter``; ``trim_metrics`` drops the records a resumed run
+replays) and ``eval_results.json`` (the evaluation history, the final scores and the
+baselines; written whole or not at all)."""
+
+import json
+import os
+import time
+
+import jax
+import numpy as np
+from absl import logging
+
+from c3dpo_jax import checkpoint, tensorboard
+
+
+class MetricsWriter:
+    """Fetches chunk metrics (one chunk late, so the host never waits on the device),
+    checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events."""
+
+    def __init__(self, workdir: str, pbar):
+        self.path = os.path.join(workdir, "metrics.jsonl")
+        self.events = tensorboard.EventWriter(workdir)
+        self.pbar, self.pending, self.last_time = pbar, None, time.perf_counter()
+
+    def push(self, first_step: int, metrics) -> None:
+        self.flush()
+        self.pending = (first_step, metrics)
+
+    def flush(self) -> None:
+        if self.pending is None:
+            return
+        first_step, metrics = self.pending
+        self.pending = None
+        metrics = jax.device_get(metrics)
+        n = len(metrics["loss"])
+        bad = np.flatnonzero(~np.isfinite(metrics["loss"]))
+        if bad.size:
+            at = first_step + int(bad[0])
+            values = {k: float(v[bad[0]]) for k, v in metrics.items()}
+            raise FloatingPointError(f"loss is not finite at step {at}: {values}")
+        now = time.perf_counter()
+        record = {k: float(np.mean(v)) for k, v in metrics.items()}
+        record.update(step=first_step + n, steps_per_s=n / max(now - self.last_time, 1e-9))
+        self.last_time = now
+        with open(self.path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+        self.events.scalars(record["step"], record)
+        self.pbar.update(n)
+        self.pbar.set_postfix(
+            loss=f"{record['loss']:.4f}",
+            repro=f"{record['loss/reprojection']:.4f}",
+            canon=f"{record['loss/canonicalisation']:.4f}",
+            refresh=False,
+        )
+        logging.log_every_n_seconds(logging.INFO, "step %d: %s", 30, record["step"], record)
+
+
+def write_results(workdir: str, results: dict) -> None:
+    checkpoint.write_json(os.path.join(workdir, "eval_results.json"), results, indent=2)
+
+
+def read_results(workdir: str) -> dict:
+    """The workdir's ``eval_results.json`` ({} when there is none yet, or with a warning
+    when it cannot be read: the evaluations so far are lost, not the run)."""
+    path = os.path.join(workdir, "eval_results.json")
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path) as f:
+            results = json.load(f)
+        if not isinstance(results, dict):
+            raise ValueError("not a JSON object")
+        return results
+    except (ValueError, UnicodeDecodeError) as e:
+        logging.warning("%s cannot be read (%s): its evaluation history starts again", path, e)
+        return {}
+
+
+def trim_metrics(workdir: str, step: int) -> None:
+    """Drops ``metrics.jsonl`` records past ``step``: a resumed run replays those steps."""
+    path = os.path.join(workdir, "metrics.jsonl")
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [line for line in f if line.strip()]
+    keep = [line for line in lines if json.loads(line).get("step", 0) <= step]
+    if len(keep) < len(lines):
+        with open(path, "w") as f:
+            f.writelines(keep)
