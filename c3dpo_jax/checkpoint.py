@@ -223,13 +223,13 @@ def software_history(workdir: str) -> list[dict[str, Any]]:
     saved = load_config(workdir) if has_checkpoint(workdir) else None
     history = list((saved or {}).get("software", []))
     current = software_record()
-    if history and history[-1] != current:
+    if history and history[-1] == current:
+        return history
+    if history:
         changed = [f"{k} {history[-1].get(k)} -> {v}" for k, v in current.items()
                    if history[-1].get(k) != v]
         logging.warning("resuming a run begun with other software: %s", "; ".join(changed))
-    if not history or history[-1] != current:
-        history.append(current)
-    return history
+    return [*history, current]
 
 
 def save_config(workdir: str, config: dict[str, Any]) -> None:
