@@ -1,9 +1,10 @@
 """Time to accuracy: test MPJPE against wall-clock training time, next to the baselines.
 
-One run = one dataset, one recipe, one seed. It trains for ``--budget_s`` seconds of
-wall-clock time (compilation included, evaluation excluded), scores the test split
-every ``--eval_every_s`` seconds with the C3DPO protocol (flip-resolved MPJPE, depth
-centred) and writes ``OUT_DIR/DATASET__RECIPE__sSEED.json``::
+One run = one dataset, one recipe, one seed, trained by the library's loop
+(``train.train_and_evaluate``, in ``OUT_DIR/runs/DATASET__RECIPE__sSEED``: the training a
+user gets from the CLI, resumable) for ``--budget_s`` seconds of training time (compilation
+included, evaluation and checkpoint writing excluded); its test curve and the baselines go
+to ``OUT_DIR/DATASET__RECIPE__sSEED.json``::
 
   python experiments/time_to_accuracy/run.py --dataset=pickup --recipe=cpu --seed=0
   python experiments/time_to_accuracy/run.py --dataset=humans --recipe=official
@@ -13,25 +14,26 @@ Datasets: the sequences of the development data by name (drink, face, jaws, pick
 stretch, yoga; not distributed with the repository, looked up in ``NRSFM_DIR``) or any
 ``.npz``/``.mat`` path (views made with ``c3dpo_jax.data.importers.views_from_sequence``:
 ``--views_per_frame`` random cameras per frame, test frames in unseen blocks), or
-``humans`` (the built-in synthetic humans, configs/humans.py's data). Recipes: ``cpu``
-(the library default: ``configs.default.cpu_recipe``; for ``humans`` configs/humans.py,
-which sets its own canonicalisation weight) and ``official`` (the release's h36m-style
-settings: 1024-wide 6-block trunks, SGD lr 1e-3, momentum 0.9, weight decay 5e-4, batch
-256).
+``humans`` (the built-in synthetic humans, configs/humans.py's data), written as JSON views
+into the run's folder. Recipes: ``cpu`` (the library default: ``configs.default.cpu_recipe``;
+for ``humans`` configs/humans.py, which sets its own canonicalisation weight) and
+``official`` (the release's h36m-style settings: 1024-wide 6-block trunks, SGD lr 1e-3,
+momentum 0.9, weight decay 5e-4, batch 256).
 
-Replay mode (``--steps_per_s=R --compile_s=C``): instead of the clock, the run stops at
-``R * (budget - C)`` steps and evaluates at the step counts the clock would have
-reached, with R and C measured by a calibration run alone on the machine
-(``--budget_s=60``, reads ``steps_per_s`` and ``compile_s`` from its output). Steps,
-data order and augmentations depend only on the seed, so replayed runs can share the
-machine (e.g. two at once, one core each) without changing their results.
+Timed mode (the default): training stops when the loop's clock reaches the budget; the test
+split is scored every ``--eval_every_steps`` steps, each point at the clock's time. Replay
+mode (``--steps_per_s=R --compile_s=C``): the run trains ``R * (budget - C)`` steps and
+scores every ``R * eval_every_s`` steps, each point at time ``C + step / R``, with R and C
+measured by a timed calibration run alone on the machine (``--budget_s=60``; its result
+holds ``steps_per_s`` and ``compile_s``). Steps, data order and augmentations depend only on
+the seed, so replayed runs can share the machine (e.g. two at once, one core each) without
+changing their results.
 """
 
 import ast
 import json
 import os
 import sys
-import time
 
 from absl import app, flags, logging
 
@@ -41,9 +43,8 @@ import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from c3dpo_jax import baselines, device_data, evaluation, train  # noqa: E402
+from c3dpo_jax import baselines, evaluation, load, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
-from c3dpo_jax.state import create_train_state  # noqa: E402
 from configs import default, release  # noqa: E402
 from configs import humans as humans_config  # noqa: E402
 
@@ -57,12 +58,15 @@ flags.DEFINE_enum("recipe", "cpu", ["cpu", "official"], "training recipe")
 flags.DEFINE_integer("seed", 0, "initialisation and training seed")
 flags.DEFINE_integer("data_seed", 0, "seed of the views (cameras, split); fixed across runs")
 flags.DEFINE_float("budget_s", 600.0, "wall-clock training budget in seconds")
-flags.DEFINE_float("eval_every_s", 30.0, "evaluate the test split every this many seconds")
+flags.DEFINE_float("eval_every_s", 30.0, "replay mode: evaluate every this many seconds")
+flags.DEFINE_integer("eval_every_steps", 500, "timed mode: evaluate every this many steps "
+                     "(0: at the end only)")
 flags.DEFINE_integer("views_per_frame", 10, "random cameras per frame of a sequence")
 flags.DEFINE_enum("cameras", "upright", ["uniform", "upright"], "camera distribution")
 flags.DEFINE_integer("train_poses", 0, "humans: training people/poses (0: configs/default.py's)")
 flags.DEFINE_bool("self_occlusion", True, "humans: hide points behind the body")
-flags.DEFINE_integer("chunk_steps", 0, "steps per compiled call (0: recipe default)")
+flags.DEFINE_integer("chunk_steps", 0, "steps per compiled call, config.train.log_every "
+                     "(0: 20, 2 for the official recipe)")
 flags.DEFINE_float("steps_per_s", 0.0, "replay mode: calibrated training steps per second")
 flags.DEFINE_float("compile_s", 0.0, "replay mode: calibrated compile seconds")
 flags.DEFINE_string("out_dir", os.path.join(HERE, "results"), "where results go")
@@ -155,64 +159,69 @@ def baseline_scores(train_data, test_data, protocol: str, n_basis: int) -> dict:
     return out
 
 
+def _views(train_data, test_data, workdir: str) -> tuple[str, str]:
+    """Writes the run's views as the JSON files the library's loop reads (once)."""
+    paths = tuple(os.path.join(workdir, f"views_{s}.json") for s in ("train", "test"))
+    if not all(os.path.exists(p) for p in paths):
+        os.makedirs(workdir, exist_ok=True)
+        for data, path in zip((train_data, test_data), paths):
+            json_dataset.save(data, path)
+    return paths
+
+
+def rate_and_compile(workdir: str, final: dict) -> tuple[float, float]:
+    """Steady steps/s (the median rate of the later half of the loop's logged chunks) and
+    compile seconds (what the final clock holds beyond its steps at that rate)."""
+    with open(os.path.join(workdir, "metrics.jsonl")) as f:
+        rates = [json.loads(line)["steps_per_s"] for line in f if line.strip()]
+    rate = float(np.median(rates[len(rates) // 2:]))
+    return rate, max(final["train_s"] - final["step"] / rate, 0.0)
+
+
 def run() -> dict:
+    """One run through the library's loop (``train.train_and_evaluate``) in
+    ``OUT_DIR/runs/DATASET__RECIPE__sSEED`` (resumable); returns the result record."""
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
+    name, recipe = dataset_name(FLAGS.dataset), FLAGS.recipe + FLAGS.tag
     c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
-    c = train.resolve_input_scale(c, train_data)  # the cpu recipe sets it from the data
-    spec = train.RunSpec.from_config(c)
-    model_cfg = spec.model
-    state = create_train_state(jax.random.key(FLAGS.seed), model_cfg, spec.optimizer())
-    train_key = jax.random.fold_in(jax.random.key(FLAGS.seed), 1)
-    train_step = spec.train_step()
-    chunk = jax.jit(train.make_train_chunk(train_step, c.train.batch_size),
-                    static_argnames="n_steps", donate_argnums=0)
-    eval_fn = jax.jit(train.make_eval_fn(model_cfg))
-    data = device_data.device_train_data(train_data, False)
-    n_chunk = FLAGS.chunk_steps or (2 if FLAGS.recipe == "official" else 20)
+    workdir = os.path.join(FLAGS.out_dir, "runs", f"{name}__{recipe}__s{FLAGS.seed}")
+    c.data.train_path, c.data.test_path = _views(train_data, test_data, workdir)
+    c.seed = FLAGS.seed
+    c.train.progress_bar = False
+    c.train.log_every = FLAGS.chunk_steps or (2 if FLAGS.recipe == "official" else 20)
     replay = FLAGS.steps_per_s > 0
-
-    def score(step: int, t: float, wall: float, loss: float) -> dict:
-        pred = train.predict(state.variables, test_data, model_cfg, 1024, eval_fn)
-        res = evaluation.evaluate(pred["shape_image_coord"], test_data, protocol)
-        rec = dict(t=t, wall_s=wall, step=step, loss=loss, mpjpe=res["mpjpe"], stress=res["stress"])
-        rec.update(evaluation.mpjpe_by_visibility(pred["shape_image_coord"], test_data))
-        logging.info("%s", rec)
-        return rec
-
-    curve, step, t_train, next_eval, compile_s = [], 0, 0.0, FLAGS.eval_every_s, None
-    start = time.perf_counter()
-    while True:
-        tic = time.perf_counter()
-        state, metrics = chunk(state, data, train_key, n_steps=n_chunk)
-        loss = np.asarray(jax.device_get(metrics["loss"]))
-        dt = time.perf_counter() - tic
-        if compile_s is None:
-            compile_s, first_chunk_s = dt, dt
-        t_train += dt
-        step += n_chunk
-        if not np.all(np.isfinite(loss)):
-            raise FloatingPointError(f"loss is not finite near step {step}")
-        t = FLAGS.compile_s + step / FLAGS.steps_per_s if replay else t_train
-        done = t >= FLAGS.budget_s
-        if t >= next_eval or done:
-            curve.append(score(step, t, time.perf_counter() - start, float(loss.mean())))
-            next_eval = (np.floor(t / FLAGS.eval_every_s) + 1) * FLAGS.eval_every_s
-        if done:
-            break
-    steady = (step - n_chunk) / max(t_train - first_chunk_s, 1e-9)
+    hooks = train.Hooks()
+    if replay:  # the steps the clock would reach, evaluated every eval_every_s of it
+        c.train.num_steps = max(int(FLAGS.steps_per_s * (FLAGS.budget_s - FLAGS.compile_s)), 1)
+        c.train.eval_every_steps = max(round(FLAGS.steps_per_s * FLAGS.eval_every_s), 1)
+    else:  # timed: train until the budget is spent, whatever the recipe's length
+        c.train.num_steps = 10**9
+        c.train.eval_every_steps = FLAGS.eval_every_steps
+        hooks = train.Hooks(should_stop=lambda step, train_s: train_s >= FLAGS.budget_s)
+    results = train.train_and_evaluate(c, workdir, hooks)
+    records = results["history"] + (
+        [] if results["history"] and results["history"][-1]["step"] == results["final"]["step"]
+        else [results["final"]])
+    curve = [dict(step=r["step"], mpjpe=r["mpjpe"], stress=r["stress"],
+                  t=(FLAGS.compile_s + r["step"] / FLAGS.steps_per_s) if replay else r["train_s"],
+                  train_s=r["train_s"]) for r in records]
+    for point in curve:
+        logging.info("%s", point)
+    rate, compile_s = ((FLAGS.steps_per_s, FLAGS.compile_s) if replay
+                       else rate_and_compile(workdir, results["final"]))
     if FLAGS.save_variables:
         with open(FLAGS.save_variables, "wb") as f:
-            f.write(flax.serialization.msgpack_serialize(jax.device_get(state.variables)))
+            f.write(flax.serialization.msgpack_serialize(jax.device_get(load(workdir).variables)))
     return dict(
-        dataset=dataset_name(FLAGS.dataset),
-        recipe=FLAGS.recipe + FLAGS.tag,
+        dataset=name,
+        recipe=recipe,
         seed=FLAGS.seed,
         data_seed=FLAGS.data_seed,
         mode="replay" if replay else "wall",
         budget_s=FLAGS.budget_s,
-        steps_per_s=FLAGS.steps_per_s if replay else steady,
-        compile_s=FLAGS.compile_s if replay else compile_s - n_chunk / steady,
+        steps_per_s=rate,
+        compile_s=compile_s,
         n_train=len(train_data),
         n_test=len(test_data),
         n_keypoints=train_data.n_keypoints,
