@@ -41,7 +41,6 @@ import suite  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
-from configs import own_json  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("dataset", "deepmimic", "a dataset of the suite")
@@ -102,13 +101,7 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: floa
 
 def main(argv):
     del argv
-    info = suite.make_data(FLAGS.dataset, FLAGS.data_root, FLAGS.out)
-    c = own_json.get_config()
-    c.data.train_path, c.data.test_path = info["train"], info["test"]
-    c.data.protocol, c.model.n_keypoints = info["protocol"], info["n_keypoints"]
-    c.seed = FLAGS.seed
-    c.train.progress_bar = False
-    c.train.eval_every_steps = FLAGS.eval_every_steps
+    c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     c.update_from_flattened_dict({k: _literal(v) for k, v in (i.split("=", 1) for i in FLAGS.set)})
     train_data = json_dataset.load(info["train"])
     test_data = json_dataset.load(info["test"])

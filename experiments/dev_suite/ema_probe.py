@@ -25,7 +25,6 @@ import suite  # noqa: E402
 
 from c3dpo_jax import train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
-from configs import own_json  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("dataset", "humans", "a dataset of the suite")
@@ -36,13 +35,7 @@ flags.DEFINE_string("ema_out", "/tmp/c3dpo_ema", "workdir of the run")
 
 def main(argv):
     del argv
-    info = suite.make_data(FLAGS.dataset, FLAGS.data_root, FLAGS.out)
-    c = own_json.get_config()
-    c.data.train_path, c.data.test_path = info["train"], info["test"]
-    c.data.protocol, c.model.n_keypoints = info["protocol"], info["n_keypoints"]
-    c.seed = FLAGS.seed
-    c.train.progress_bar = False
-    c.train.eval_every_steps = FLAGS.eval_every_steps
+    c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     test_data = json_dataset.load(info["test"])
     c = train.resolve_input_scale(c, json_dataset.load(info["train"]))
     spec = train.RunSpec.from_config(c)

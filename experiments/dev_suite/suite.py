@@ -115,6 +115,24 @@ def make_data(name: str, data_root: str, out: str) -> dict:
         return dict(json.load(f), **paths)
 
 
+def run_config(name: str, seed: int):
+    """The config of a suite run made in-process (``--config`` on the dataset's files, the
+    seed, ``--eval_every_steps``, no progress bar): what ``command`` gives the CLI."""
+    import importlib.util
+
+    info = make_data(name, FLAGS.data_root, FLAGS.out)
+    spec = importlib.util.spec_from_file_location("suite_config", os.path.join(ROOT, FLAGS.config))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    c = module.get_config()
+    c.data.train_path, c.data.test_path = info["train"], info["test"]
+    c.data.protocol, c.model.n_keypoints = info["protocol"], info["n_keypoints"]
+    c.seed = seed
+    c.train.progress_bar = False
+    c.train.eval_every_steps = FLAGS.eval_every_steps
+    return c, info
+
+
 def run_dir(out: str, variant: str, dataset: str, seed) -> str:
     return os.path.join(out, "runs", variant, f"{dataset}__s{seed}")
 
@@ -140,13 +158,16 @@ def command(data: dict, overrides: list[str], seed, workdir: str) -> list[str]:
     return args + [f"--config.{item}" for item in overrides]
 
 
-def run_all(jobs: list[tuple[str, list[str]]]) -> None:
-    """Runs ``(workdir, command)`` pairs, ``FLAGS.jobs`` at a time, one core each."""
+def run_all(jobs: list[tuple[str, list[str]]], n_at_once: int | None = None,
+            out: str | None = None) -> None:
+    """Runs ``(workdir, command)`` pairs, ``n_at_once`` (``--jobs``) at a time, one core
+    each, from the repository root; progress lines name workdirs relative to ``out``."""
+    n_at_once, out = n_at_once or FLAGS.jobs, out or FLAGS.out
     cores = sorted(os.sched_getaffinity(0))
     running: dict[int, tuple[subprocess.Popen, str, float]] = {}
     pending = list(jobs)
     while pending or running:
-        for core in cores[: FLAGS.jobs]:
+        for core in cores[:n_at_once]:
             if core in running or not pending:
                 continue
             workdir, cmd = pending.pop(0)
@@ -155,13 +176,13 @@ def run_all(jobs: list[tuple[str, list[str]]]) -> None:
             proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                                     preexec_fn=lambda c=core: os.sched_setaffinity(0, {c}))
             running[core] = (proc, workdir, time.time())
-            print(f"[core {core}] {os.path.relpath(workdir, FLAGS.out)}", flush=True)
+            print(f"[core {core}] {os.path.relpath(workdir, out)}", flush=True)
         time.sleep(2)
         for core, (proc, workdir, start) in list(running.items()):
             if proc.poll() is not None:
                 del running[core]
                 status = "done" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
-                print(f"[core {core}] {os.path.relpath(workdir, FLAGS.out)}: {status} in "
+                print(f"[core {core}] {os.path.relpath(workdir, out)}: {status} in "
                       f"{time.time() - start:.0f} s", flush=True)
 
 
