@@ -37,9 +37,7 @@ import glob
 import json
 import os
 import re
-import subprocess
 import sys
-import time
 
 import numpy as np
 from absl import app, flags
@@ -47,6 +45,9 @@ from absl import app, flags
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "experiments"))
+
+from runner import is_finished, run_all  # noqa: E402
 
 NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
@@ -137,14 +138,6 @@ def run_dir(out: str, variant: str, dataset: str, seed) -> str:
     return os.path.join(out, "runs", variant, f"{dataset}__s{seed}")
 
 
-def is_finished(workdir: str) -> bool:
-    path = os.path.join(workdir, "eval_results.json")
-    if not os.path.exists(path):
-        return False
-    with open(path) as f:
-        return "final" in json.load(f)
-
-
 def command(data: dict, overrides: list[str], seed, workdir: str) -> list[str]:
     """The CLI call of one run."""
     args = [sys.executable, "-m", "c3dpo_jax.main", f"--config={FLAGS.config}",
@@ -156,34 +149,6 @@ def command(data: dict, overrides: list[str], seed, workdir: str) -> list[str]:
             f"--config.seed={seed}", "--config.train.progress_bar=False",
             f"--config.train.eval_every_steps={FLAGS.eval_every_steps}"]
     return args + [f"--config.{item}" for item in overrides]
-
-
-def run_all(jobs: list[tuple[str, list[str]]], n_at_once: int | None = None,
-            out: str | None = None) -> None:
-    """Runs ``(workdir, command)`` pairs, ``n_at_once`` (``--jobs``) at a time, one core
-    each, from the repository root; progress lines name workdirs relative to ``out``."""
-    n_at_once, out = n_at_once or FLAGS.jobs, out or FLAGS.out
-    cores = sorted(os.sched_getaffinity(0))
-    running: dict[int, tuple[subprocess.Popen, str, float]] = {}
-    pending = list(jobs)
-    while pending or running:
-        for core in cores[:n_at_once]:
-            if core in running or not pending:
-                continue
-            workdir, cmd = pending.pop(0)
-            os.makedirs(workdir, exist_ok=True)
-            log = open(os.path.join(workdir, "log.txt"), "a")
-            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                    preexec_fn=lambda c=core: os.sched_setaffinity(0, {c}))
-            running[core] = (proc, workdir, time.time())
-            print(f"[core {core}] {os.path.relpath(workdir, out)}", flush=True)
-        time.sleep(2)
-        for core, (proc, workdir, start) in list(running.items()):
-            if proc.poll() is not None:
-                del running[core]
-                status = "done" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
-                print(f"[core {core}] {os.path.relpath(workdir, out)}: {status} in "
-                      f"{time.time() - start:.0f} s", flush=True)
 
 
 def at_minutes(history: list[dict], final: dict, minutes: float) -> float:
@@ -290,7 +255,7 @@ def main(argv):
                     workdir = run_dir(FLAGS.out, name, d, seed)
                     if not is_finished(workdir):
                         jobs.append((workdir, command(data[d], overrides, seed, workdir)))
-        run_all(jobs)
+        run_all(jobs, FLAGS.jobs, FLAGS.out)
     for name, overrides in variants:
         text = table(FLAGS.out, name, FLAGS.datasets, FLAGS.seeds)
         header = f"### {name}" + (f" ({', '.join(overrides)})" if overrides else "")

@@ -1,0 +1,205 @@
+"""Robustness to 2D noise and occlusion, for several keypoint counts (the paper's
+supplementary "Analysis of robustness", on the built-in humans).
+
+For each keypoint count (the 17 joints, plus ``--dense`` surface points), each noise level
+sigma and each occlusion probability p, the built-in humans' views are corrupted (train and
+test inputs alike: Gaussian noise of standard deviation sigma times the views' median RMS
+radius added to every 2D point, then each point hidden with probability p; the 3D ground
+truth stays clean), C3DPO is trained on them with the CLI, and the test MPJPE is measured
+on the 17 joints, whatever the model was trained on (the paper's "representative" points)::
+
+  python experiments/robustness/run.py                      # the grid, then table + figure
+  python experiments/robustness/run.py --report_only        # table + figure of the runs made
+
+Runs go to ``OUT/runs/kK_sSIGMA_pP`` (a finished run is not run again), ``--jobs`` at a
+time, one core each; ``OUT/robustness.md`` and ``OUT/robustness.png`` are the table and the
+heat maps. Each cell also scores the rigid baseline (the training mean shape of the
+joints, best rigid fit to each corrupted view) on the same joints.
+"""
+
+import json
+import os
+import sys
+
+import numpy as np
+from absl import app, flags
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "experiments"))
+
+from runner import is_finished, run_all  # noqa: E402
+
+FLAGS = flags.FLAGS
+flags.DEFINE_list("sigmas", ["0", "0.05", "0.1"], "2D noise std, in median RMS radii")
+flags.DEFINE_list("occlusions", ["0", "0.2", "0.4"], "probability of hiding a point")
+flags.DEFINE_list("dense", ["0", "80", "500"], "surface points added to the 17 joints")
+flags.DEFINE_integer("steps", 3000, "training steps of every run")
+flags.DEFINE_integer("grid_seed", 0, "seed of the training and of the corruption")
+flags.DEFINE_string("grid_out", os.path.join(HERE, "results"), "data, runs, table, figure")
+flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
+flags.DEFINE_bool("report_only", False, "only the table and figure of the runs made")
+
+N_JOINTS = 17
+
+
+def cell_name(dense: int, sigma: float, p: float) -> str:
+    return f"k{N_JOINTS + dense}_s{sigma:g}_p{p:g}"
+
+
+def corrupt(data, sigma: float, p: float, radius: float, rng: np.random.Generator):
+    """``data`` with noise (std ``sigma * radius``) on every 2D point, then each point
+    hidden with probability ``p`` (at least 2 visible kept per view); 3D unchanged."""
+    from c3dpo_jax.data import KeypointData
+
+    kp = data.kp + sigma * radius * rng.normal(size=data.kp.shape)
+    vis = data.vis * (rng.random(data.vis.shape) >= p)
+    few = vis.sum(1) < 2  # a view needs 2 visible points; show its first two again
+    vis[few, :2] = 1.0
+    return KeypointData(kp=(kp * vis[..., None]).astype(np.float32),
+                        vis=vis.astype(np.float32), kp3d=data.kp3d, name=data.name)
+
+
+def joints(data):
+    """The 17 joints of a split (the points every model is scored on)."""
+    from c3dpo_jax.data import KeypointData
+
+    return KeypointData(kp=data.kp[:, :N_JOINTS], vis=data.vis[:, :N_JOINTS],
+                        kp3d=data.kp3d[:, :N_JOINTS], name=data.name)
+
+
+def make_cell(dense: int, sigma: float, p: float, out: str, seed: int) -> dict:
+    """Writes a cell's corrupted train/test JSON once; returns their paths and K."""
+    from c3dpo_jax.data import humans, json_dataset
+
+    name = cell_name(dense, sigma, p)
+    paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
+    if not all(os.path.exists(q) for q in paths.values()):
+        train, test = humans.make_splits(dense_points=dense, self_occlusion=False, seed=0)
+        centred = train.kp[:, :N_JOINTS] - train.kp[:, :N_JOINTS].mean(1, keepdims=True)
+        radius = float(np.median(np.sqrt((centred**2).sum(-1).mean(1))))
+        rng = np.random.default_rng([seed, dense, round(sigma * 1e4), round(p * 1e4)])
+        os.makedirs(os.path.join(out, "data"), exist_ok=True)
+        for split, data in (("train", train), ("test", test)):
+            json_dataset.save(corrupt(data, sigma, p, radius, rng), paths[split])
+    return dict(paths, n_keypoints=N_JOINTS + dense)
+
+
+def command(cell: dict, workdir: str) -> list[str]:
+    """The CLI call of one cell: the built-in humans' recipe (configs/humans.py) on the
+    cell's files, ``--steps`` steps with the learning rate x0.1 for the last 20%."""
+    steps = FLAGS.steps
+    return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py",
+            f"--workdir={workdir}", "--nofigures",
+            f"--config.data.train_path={cell['train']}",
+            f"--config.data.test_path={cell['test']}",
+            f"--config.model.n_keypoints={cell['n_keypoints']}",
+            f"--config.seed={FLAGS.grid_seed}", "--config.train.progress_bar=False",
+            f"--config.train.num_steps={steps}",
+            f"--config.train.samples_per_epoch={256 * steps // 5}",
+            "--config.train.epochs=5", "--config.optim.lr_milestones=(4,)",
+            "--config.train.eval_every_steps=0", "--config.train.eval_every_epochs=0"]
+
+
+def score(workdir: str, make) -> dict:
+    """Test MPJPE on the 17 joints of the run in ``workdir`` and of the rigid baseline
+    (kept in ``workdir/joints.json``; ``make()`` gives the cell's files when not yet)."""
+    from c3dpo_jax import baselines, evaluation, load, reconstruct
+    from c3dpo_jax.data import json_dataset
+
+    path = os.path.join(workdir, "joints.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    cell = make()
+    train, test = json_dataset.load(cell["train"]), json_dataset.load(cell["test"])
+    pred = reconstruct(load(workdir), test.kp, test.vis)
+    res = evaluation.evaluate(pred.shape_3d[:, :N_JOINTS], joints(test),
+                              "up3d")
+    tj = joints(test)
+    rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(joints(train).kp3d),
+                                     tj.kp, tj.vis)
+    out = dict(mpjpe=res["mpjpe"], rigid=evaluation.evaluate(rigid, tj, "up3d")["mpjpe"],
+               visible=float(test.vis.mean()))
+    with open(path, "w") as f:
+        json.dump(out, f)
+    return out
+
+
+def report(out: str, grid: list[tuple[int, float, float]], seed: int = 0) -> str:
+    scores = {}
+    for dense, sigma, p in grid:
+        workdir = os.path.join(out, "runs", cell_name(dense, sigma, p))
+        if is_finished(workdir):
+            scores[(dense, sigma, p)] = score(
+                workdir, lambda d=dense, s=sigma, q=p: make_cell(d, s, q, out, seed))
+    sigmas = sorted({g[1] for g in grid})
+    occl = sorted({g[2] for g in grid})
+    lines = []
+    for dense in sorted({g[0] for g in grid}):
+        lines += [f"**{N_JOINTS + dense} keypoints** (test MPJPE on the 17 joints; in brackets "
+                  "the rigid baseline on the same views)", "",
+                  "| sigma \\ p | " + " | ".join(f"{p:g}" for p in occl) + " |",
+                  "|---|" + "---|" * len(occl)]
+        for sigma in sigmas:
+            cells = [f"{scores[k]['mpjpe']:.3f} ({scores[k]['rigid']:.3f})"
+                     if (k := (dense, sigma, p)) in scores else "-" for p in occl]
+            lines.append(f"| {sigma:g} | " + " | ".join(cells) + " |")
+        lines.append("")
+    _figure(out, scores, sigmas, occl)
+    return "\n".join(lines)
+
+
+def _figure(out: str, scores: dict, sigmas: list[float], occl: list[float]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    counts = sorted({k[0] for k in scores})
+    if not counts:
+        return
+    values = [v["mpjpe"] for v in scores.values()]
+    fig, axes = plt.subplots(1, len(counts), figsize=(3.6 * len(counts), 3.4), squeeze=False)
+    for ax, dense in zip(axes[0], counts):
+        grid = np.full((len(sigmas), len(occl)), np.nan)
+        for i, s in enumerate(sigmas):
+            for j, p in enumerate(occl):
+                if (dense, s, p) in scores:
+                    grid[i, j] = scores[(dense, s, p)]["mpjpe"]
+        im = ax.imshow(grid, cmap="viridis", vmin=min(values), vmax=max(values), origin="upper")
+        for (i, j), v in np.ndenumerate(grid):
+            if np.isfinite(v):
+                ax.text(j, i, f"{v:.3f}", ha="center", va="center", color="w", fontsize=9)
+        ax.set_xticks(range(len(occl)), [f"{p:g}" for p in occl])
+        ax.set_yticks(range(len(sigmas)), [f"{s:g}" for s in sigmas])
+        ax.set_xlabel("occlusion probability p")
+        ax.set_ylabel("2D noise sigma (RMS radii)")
+        ax.set_title(f"{N_JOINTS + dense} keypoints")
+    fig.colorbar(im, ax=axes[0].tolist(), label="test MPJPE, 17 joints")
+    fig.savefig(os.path.join(out, "robustness.png"), dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def main(argv):
+    del argv
+    out = FLAGS.grid_out
+    grid = [(int(d), float(s), float(p)) for d in FLAGS.dense for s in FLAGS.sigmas
+            for p in FLAGS.occlusions]
+    if not FLAGS.report_only:
+        jobs = []
+        for dense, sigma, p in sorted(grid, key=lambda g: -g[0]):  # the slowest first
+            workdir = os.path.join(out, "runs", cell_name(dense, sigma, p))
+            if not is_finished(workdir):
+                jobs.append((workdir, command(make_cell(dense, sigma, p, out, FLAGS.grid_seed),
+                                              workdir)))
+        run_all(jobs, FLAGS.jobs, out)
+    text = report(out, grid, FLAGS.grid_seed)
+    with open(os.path.join(out, "robustness.md"), "w") as f:
+        f.write(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,48 @@
+"""Runs of the experiments' training jobs: several at a time, each pinned to one core.
+
+Shared by the experiments that train many models through the CLI (``dev_suite/suite.py``,
+``robustness/run.py``); it defines no flags, so tests can import it beside the CLI.
+"""
+
+import json
+import os
+import subprocess
+import time
+
+ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+
+def is_finished(workdir: str) -> bool:
+    """Whether the run in ``workdir`` has made its final evaluation."""
+    path = os.path.join(workdir, "eval_results.json")
+    if not os.path.exists(path):
+        return False
+    with open(path) as f:
+        return "final" in json.load(f)
+
+
+def run_all(jobs: list[tuple[str, list[str]]], n_at_once: int, out: str) -> None:
+    """Runs ``(workdir, command)`` pairs from the repository root, ``n_at_once`` at a time,
+    each pinned to one core (its output in ``workdir/log.txt``); progress lines name the
+    workdirs relative to ``out``."""
+    cores = sorted(os.sched_getaffinity(0))
+    running: dict[int, tuple[subprocess.Popen, str, float]] = {}
+    pending = list(jobs)
+    while pending or running:
+        for core in cores[:n_at_once]:
+            if core in running or not pending:
+                continue
+            workdir, cmd = pending.pop(0)
+            os.makedirs(workdir, exist_ok=True)
+            log = open(os.path.join(workdir, "log.txt"), "a")
+            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                    preexec_fn=lambda c=core: os.sched_setaffinity(0, {c}))
+            running[core] = (proc, workdir, time.time())
+            print(f"[core {core}] {os.path.relpath(workdir, out)}", flush=True)
+        time.sleep(2)
+        for core, (proc, workdir, start) in list(running.items()):
+            if proc.poll() is not None:
+                del running[core]
+                status = "done" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
+                print(f"[core {core}] {os.path.relpath(workdir, out)}: {status} in "
+                      f"{time.time() - start:.0f} s", flush=True)

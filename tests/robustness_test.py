@@ -1,0 +1,65 @@
+"""experiments/robustness: the corruption of the views and the grid's table and figure."""
+
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+EXP = os.path.join(ROOT, "experiments", "robustness")
+
+
+@pytest.fixture(scope="module")
+def robustness():
+    spec = importlib.util.spec_from_file_location("robustness_run", os.path.join(EXP, "run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_corruption_adds_noise_of_the_asked_size_and_hides_points(robustness):
+    from c3dpo_jax.data import KeypointData
+
+    rng = np.random.default_rng(0)
+    kp3d = rng.normal(size=(4000, 20, 3)).astype(np.float32)
+    data = KeypointData(kp=kp3d[..., :2].copy(), vis=np.ones((4000, 20), np.float32), kp3d=kp3d)
+    out = robustness.corrupt(data, sigma=0.1, p=0.3, radius=2.0, rng=np.random.default_rng(1))
+    shown = out.vis > 0
+    assert abs(1 - shown.mean() - 0.3) < 0.01  # each point hidden with probability p
+    assert (shown.sum(1) >= 2).all()
+    noise = (out.kp - data.kp)[shown]
+    assert abs(noise.std() - 0.2) < 0.005 and abs(noise.mean()) < 0.005  # sigma * radius
+    assert (out.kp[~shown] == 0).all()  # hidden points zeroed, as the release's files
+    np.testing.assert_array_equal(out.kp3d, kp3d)  # the ground truth stays clean
+    # Nothing asked, nothing changed.
+    same = robustness.corrupt(data, 0.0, 0.0, 2.0, np.random.default_rng(1))
+    np.testing.assert_array_equal(same.kp, data.kp)
+    np.testing.assert_array_equal(same.vis, data.vis)
+
+
+def test_views_that_would_lose_all_points_keep_two(robustness):
+    from c3dpo_jax.data import KeypointData
+
+    kp3d = np.ones((50, 5, 3), np.float32)
+    data = KeypointData(kp=kp3d[..., :2], vis=np.ones((50, 5), np.float32), kp3d=kp3d)
+    out = robustness.corrupt(data, 0.0, 1.0, 1.0, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.vis.sum(1), 2)
+
+
+def test_report_tables_every_cell_and_draws_the_heat_maps(robustness, tmp_path):
+    grid = [(d, s, p) for d in (0, 80) for s in (0.0, 0.1) for p in (0.0, 0.4)]
+    scores = {}
+    for i, cell in enumerate(grid[:-1]):  # the last cell is not run yet
+        workdir = tmp_path / "runs" / robustness.cell_name(*cell)
+        workdir.mkdir(parents=True)
+        (workdir / "eval_results.json").write_text(json.dumps({"final": {"mpjpe": 0.0}}))
+        scores[cell] = dict(mpjpe=0.1 + i / 100, rigid=0.2 + i / 100, visible=1.0)
+        (workdir / "joints.json").write_text(json.dumps(scores[cell]))
+    text = robustness.report(str(tmp_path), grid)
+    assert "**17 keypoints**" in text and "**97 keypoints**" in text
+    rows = [line for line in text.splitlines() if line.startswith("| 0.1 |")]
+    assert rows[0] == "| 0.1 | 0.120 (0.220) | 0.130 (0.230) |"  # 17 points, sigma 0.1
+    assert rows[1] == "| 0.1 | 0.160 (0.260) | - |"  # 97 points: the missing cell
+    assert os.path.getsize(tmp_path / "robustness.png") > 1000
