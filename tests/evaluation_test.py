@@ -42,6 +42,17 @@ def test_mpjpe_flip_and_stress_match_brute_force():
     )
 
 
+def test_stress_in_blocks_of_samples_is_the_per_sample_brute_force():
+    # Dense points are scored a few samples at a time (bounded memory): any block size,
+    # down to one sample, gives each sample's brute-force stress.
+    rng = np.random.default_rng(3)
+    gt, pred = rng.normal(size=(2, 7, 9, 3))
+    every = np.ones((7, 9))
+    expected = [_loop_stress(p, g) for p, g in zip(pred, gt)]
+    for max_elements in (1, 50, 10**9):
+        np.testing.assert_allclose(evaluation.stress(pred, gt, every, max_elements), expected)
+
+
 def test_known_answer_depth_offset_is_ignored_and_shift_is_not():
     gt = np.zeros((1, 2, 3))
     gt[0, 1] = [1, 0, 0]
