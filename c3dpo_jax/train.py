@@ -188,11 +188,14 @@ class Hooks:
     computed: fetching from it waits); ``after_evaluation(record, state)`` after each test
     evaluation, with the record appended to the history; ``should_stop(step, train_s)``,
     asked after every chunk with the training seconds so far: True ends training early
-    (checkpoint and final evaluation at that step; running again resumes to the end)."""
+    (checkpoint and final evaluation at that step; running again resumes to the end);
+    ``should_evaluate(step, train_s)``, asked after every chunk: True evaluates the test
+    split there besides every ``eval_every`` steps (e.g. at times of a clock)."""
 
     after_chunk: Callable[[int, TrainState], None] | None = None
     after_evaluation: Callable[[dict, TrainState], None] | None = None
     should_stop: Callable[[int, float], bool] | None = None
+    should_evaluate: Callable[[int, float], bool] | None = None
 
 
 def _data_parallel_mesh(config) -> Mesh | None:
@@ -316,11 +319,12 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
             step = stop
             if hooks.after_chunk is not None:
                 hooks.after_chunk(step, state)
+            clock = train_s + time.perf_counter() - tic
             stopping = signals.received is not None or (
-                hooks.should_stop is not None
-                and hooks.should_stop(step, train_s + time.perf_counter() - tic))
-            evaluating = (spec.eval_every and step % spec.eval_every == 0 and step < total
-                          and signals.received is None)
+                hooks.should_stop is not None and hooks.should_stop(step, clock))
+            evaluating = step < total and signals.received is None and (
+                (spec.eval_every and step % spec.eval_every == 0)
+                or (hooks.should_evaluate is not None and hooks.should_evaluate(step, clock)))
             if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
                 writer.flush()  # never checkpoint or score a state whose losses were not checked
                 train_s += time.perf_counter() - tic

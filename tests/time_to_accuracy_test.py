@@ -33,10 +33,10 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path))
     with open(os.path.join(out, "wave__cpu__s0.json")) as f:
         result = json.load(f)
-    # Replay: 10 steps/s x (3 s - 1 s of compilation) = 20 steps, scored every 10 steps
-    # (1 s of the clock) by the library's loop, each point at 1 s + 0.1 s per step.
-    assert [p["step"] for p in result["curve"]] == [10, 20]
-    np.testing.assert_allclose([p["t"] for p in result["curve"]], [2.0, 3.0])
+    # Replay: time = compile_s + step / steps_per_s (1 s + 0.1 s per step); evaluations at the
+    # first chunk (5 steps) at or past each whole second, and at the end of the budget.
+    assert [p["step"] for p in result["curve"]] == [5, 10, 20]
+    np.testing.assert_allclose([p["t"] for p in result["curve"]], [1.5, 2.0, 3.0])
     # The run is the library's: its workdir holds the loop's records and the same final.
     with open(os.path.join(out, "runs", "wave__cpu__s0", "eval_results.json")) as f:
         loop = json.load(f)
@@ -64,7 +64,7 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
                              "--at=2,3"], check=True, capture_output=True, text=True)
     row = next(line for line in report.stdout.splitlines() if line.startswith("| wave"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[1:3] == [f"{p['mpjpe']:.3f}" for p in result["curve"]]  # t = 2 s, 3 s
+    assert cells[1:3] == [f"{p['mpjpe']:.3f}" for p in result["curve"][1:]]  # t = 2 s, 3 s
     assert cells[-2] == "0.123"  # the fitted PCA basis column, from baselines/wave.json
     assert os.path.getsize(os.path.join(out, "curves.png")) > 1000
 
@@ -85,7 +85,7 @@ def test_timed_run_stops_at_its_budget_and_measures_its_rate(tmp_path):
     seq, out = str(tmp_path / "wave.npz"), str(tmp_path / "results")
     _sequence(seq)
     cmd = [sys.executable, os.path.join(EXP, "run.py"), f"--dataset={seq}", "--recipe=cpu",
-           "--budget_s=2", "--eval_every_steps=0", "--chunk_steps=5", "--views_per_frame=2",
+           "--budget_s=2", "--eval_every_s=100", "--chunk_steps=5", "--views_per_frame=2",
            f"--out_dir={out}"] + [f"--set={s}" for s in TINY]
     subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path))
     with open(os.path.join(out, "wave__cpu__s0.json")) as f:

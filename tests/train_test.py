@@ -213,6 +213,13 @@ def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path)
     assert [s for s, _ in curves["loss/reprojection"]] == [5, 10, 15, 20]
     assert curves["test/mpjpe"] == [(h["step"], pytest.approx(h["mpjpe"], rel=1e-6))
                                     for h in [*resumed["history"], resumed["final"]]]
+    # Evaluations a hook asks for (e.g. at times of a clock) instead of every N steps.
+    c.train.eval_every_steps = c.train.eval_every_epochs = 0
+    asked = train.train_and_evaluate(c, str(tmp_path / "asked"), train.Hooks(
+        should_evaluate=lambda step, train_s: train_s > 0 and step in (5, 15)))
+    assert [h["step"] for h in asked["history"]] == [5, 15]
+    assert [h["mpjpe"] for h in asked["history"]] == pytest.approx(
+        [whole["history"][0]["mpjpe"], whole["history"][2]["mpjpe"]], abs=1e-6)
 
 
 @pytest.mark.parametrize("variant", ["base", "equiv", "full", "perspective"])

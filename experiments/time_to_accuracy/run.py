@@ -20,18 +20,20 @@ for ``humans`` configs/humans.py, which sets its own canonicalisation weight) an
 ``official`` (the release's h36m-style settings: 1024-wide 6-block trunks, SGD lr 1e-3,
 momentum 0.9, weight decay 5e-4, batch 256).
 
-Timed mode (the default): training stops when the loop's clock reaches the budget; the test
-split is scored every ``--eval_every_steps`` steps, each point at the clock's time. Replay
-mode (``--steps_per_s=R --compile_s=C``): the run trains ``R * (budget - C)`` steps and
-scores every ``R * eval_every_s`` steps, each point at time ``C + step / R``, with R and C
-measured by a timed calibration run alone on the machine (``--budget_s=60``; its result
-holds ``steps_per_s`` and ``compile_s``). Steps, data order and augmentations depend only on
+Timed mode (the default): training stops at the first chunk where the loop's clock reaches
+the budget. Replay mode (``--steps_per_s=R --compile_s=C``): the clock is ``C + step / R``
+and the run trains the steps that clock needs to reach the budget, with R and C measured by a
+timed calibration run alone on the machine (``--budget_s=60``; its result holds
+``steps_per_s`` and ``compile_s``). In both, the test split is scored at the first chunk at
+or past every ``--eval_every_s`` seconds of the clock (``train.Hooks.should_evaluate``).
+Steps, data order and augmentations depend only on
 the seed, so replayed runs can share the machine (e.g. two at once, one core each) without
 changing their results.
 """
 
 import ast
 import json
+import math
 import os
 import sys
 
@@ -58,9 +60,7 @@ flags.DEFINE_enum("recipe", "cpu", ["cpu", "official"], "training recipe")
 flags.DEFINE_integer("seed", 0, "initialisation and training seed")
 flags.DEFINE_integer("data_seed", 0, "seed of the views (cameras, split); fixed across runs")
 flags.DEFINE_float("budget_s", 600.0, "wall-clock training budget in seconds")
-flags.DEFINE_float("eval_every_s", 30.0, "replay mode: evaluate every this many seconds")
-flags.DEFINE_integer("eval_every_steps", 500, "timed mode: evaluate every this many steps "
-                     "(0: at the end only)")
+flags.DEFINE_float("eval_every_s", 30.0, "evaluate the test split every this many seconds")
 flags.DEFINE_integer("views_per_frame", 10, "random cameras per frame of a sequence")
 flags.DEFINE_enum("cameras", "upright", ["uniform", "upright"], "camera distribution")
 flags.DEFINE_integer("train_poses", 0, "humans: training people/poses (0: configs/default.py's)")
@@ -191,20 +191,36 @@ def run() -> dict:
     c.train.progress_bar = False
     c.train.log_every = FLAGS.chunk_steps or (2 if FLAGS.recipe == "official" else 20)
     replay = FLAGS.steps_per_s > 0
-    hooks = train.Hooks()
-    if replay:  # the steps the clock would reach, evaluated every eval_every_s of it
-        c.train.num_steps = max(int(FLAGS.steps_per_s * (FLAGS.budget_s - FLAGS.compile_s)), 1)
-        c.train.eval_every_steps = max(round(FLAGS.steps_per_s * FLAGS.eval_every_s), 1)
-    else:  # timed: train until the budget is spent, whatever the recipe's length
+    chunk = c.train.log_every
+    if replay:  # the clock of a replay: the calibrated compile time, then R steps a second
+        def clock(step, train_s):
+            return FLAGS.compile_s + step / FLAGS.steps_per_s
+        # The first chunk at or past the budget, as the timed run would stop.
+        needed = FLAGS.steps_per_s * (FLAGS.budget_s - FLAGS.compile_s)
+        c.train.num_steps = max(math.ceil(needed / chunk - 1e-9), 1) * chunk
+    else:  # timed: the loop's own clock, until the budget is spent
+        def clock(step, train_s):
+            return train_s
         c.train.num_steps = 10**9
-        c.train.eval_every_steps = FLAGS.eval_every_steps
-        hooks = train.Hooks(should_stop=lambda step, train_s: train_s >= FLAGS.budget_s)
+    next_eval = [FLAGS.eval_every_s]
+
+    def should_evaluate(step, train_s):
+        """At the first chunk at or past each multiple of ``eval_every_s`` of the clock."""
+        t = clock(step, train_s)
+        if t < next_eval[0]:
+            return False
+        next_eval[0] = (math.floor(t / FLAGS.eval_every_s) + 1) * FLAGS.eval_every_s
+        return True
+
+    c.train.eval_every_steps = c.train.eval_every_epochs = 0
+    hooks = train.Hooks(should_evaluate=should_evaluate, should_stop=None if replay else (
+        lambda step, train_s: train_s >= FLAGS.budget_s))
     results = train.train_and_evaluate(c, workdir, hooks)
     records = results["history"] + (
         [] if results["history"] and results["history"][-1]["step"] == results["final"]["step"]
         else [results["final"]])
     curve = [dict(step=r["step"], mpjpe=r["mpjpe"], stress=r["stress"],
-                  t=(FLAGS.compile_s + r["step"] / FLAGS.steps_per_s) if replay else r["train_s"],
+                  t=clock(r["step"], r["train_s"]),
                   train_s=r["train_s"]) for r in records]
     for point in curve:
         logging.info("%s", point)

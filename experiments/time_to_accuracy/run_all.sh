@@ -55,7 +55,7 @@ for d in $DATASETS; do
     [ -f "$f" ] && continue
     [ "${REUSE_CALIBRATION:-1}" = 1 ] && reuse_calibration "$d" "$r" && continue
     "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --budget_s=60 \
-      --eval_every_steps=0 --out_dir="$CAL" > "$HERE/logs/cal_${d}_${r}.log" 2>&1
+      --eval_every_s=60 --out_dir="$CAL" > "$HERE/logs/cal_${d}_${r}.log" 2>&1
   done
 done
 
