@@ -161,7 +161,8 @@ def _figure(out: str, scores: dict, sigmas: list[float], occl: list[float]) -> N
     if not counts:
         return
     values = [v["mpjpe"] for v in scores.values()]
-    fig, axes = plt.subplots(1, len(counts), figsize=(3.6 * len(counts), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(counts), figsize=(3.8 * len(counts), 3.4), squeeze=False,
+                             gridspec_kw={"wspace": 0.3})
     for ax, dense in zip(axes[0], counts):
         grid = np.full((len(sigmas), len(occl)), np.nan)
         for i, s in enumerate(sigmas):
@@ -175,7 +176,8 @@ def _figure(out: str, scores: dict, sigmas: list[float], occl: list[float]) -> N
         ax.set_xticks(range(len(occl)), [f"{p:g}" for p in occl])
         ax.set_yticks(range(len(sigmas)), [f"{s:g}" for s in sigmas])
         ax.set_xlabel("occlusion probability p")
-        ax.set_ylabel("2D noise sigma (RMS radii)")
+        if ax is axes[0][0]:
+            ax.set_ylabel("2D noise sigma (RMS radii)")
         ax.set_title(f"{N_JOINTS + dense} keypoints")
     fig.colorbar(im, ax=axes[0].tolist(), label="test MPJPE, 17 joints")
     fig.savefig(os.path.join(out, "robustness.png"), dpi=120, bbox_inches="tight")
