@@ -6,7 +6,7 @@
 17 joints in Human3.6M order (plot with the ``h36m`` skeleton), 300 train / 50 test
 people and poses, each seen by 30 upright cameras (the paper's S-Up3D protocol),
 self-occlusion computed geometrically. ``--config.data.humans.dense_points=300`` adds
-surface points (then set --config.model.n_keypoints=317 and a larger basis, e.g. 30).
+surface points (``model.n_keypoints`` follows: 17 + 300).
 CPU-sized networks and Adam (configs.default.cpu_recipe) with a 3x canonicalisation
 weight (see below); the method is the paper's.
 """
@@ -19,7 +19,8 @@ def get_config(arg=None):
     c.data.name = "humans"
     c.data.source = "humans"
     c.data.protocol = "up3d"  # mean depth of pred and gt set to 0, as for S-Up3D
-    c.model.n_keypoints = 17 + c.data.humans.dense_points
+    # A reference, so that ``--config.data.humans.dense_points=M`` alone gives K = 17 + M.
+    c.model.n_keypoints = c.data.humans.get_ref("dense_points") + 17
     default.cpu_recipe(c)
     # A 3x canonicalisation weight: with 1 these varied, self-occluding bodies factorise
     # degenerately (the test error rises from 0.117 to 0.18 while the losses fall), with 10

@@ -17,6 +17,27 @@ def test_builtin_sources_match_their_configs():
         assert len(train) > len(test) > 0
 
 
+def test_humans_keypoint_count_follows_the_dense_points_given_on_the_command_line():
+    from absl import flags
+    from ml_collections import config_flags
+
+    def parse(*args):  # as the CLI parses its command line
+        argv = ["prog", *args]
+        fv = flags.FlagValues()
+        config_flags.DEFINE_config_file("config", None, flag_values=fv, lock_config=True,
+                                        sys_argv=argv)
+        fv(argv)
+        return fv.config
+
+    c = parse("--config=configs/humans.py:smoke", "--config.data.humans.dense_points=6")
+    assert c.model.n_keypoints == 23
+    train, _ = load_splits(c.data)
+    assert train.n_keypoints == 23
+    c = parse("--config=configs/humans.py", "--config.data.humans.dense_points=6",
+              "--config.model.n_keypoints=40")  # an explicit K still wins (and is then checked)
+    assert c.model.n_keypoints == 40
+
+
 def test_synthetic_source_is_unchanged():
     c = default.apply_variants(default.get_config(), "smoke")
     train, _ = load_splits(c.data)
