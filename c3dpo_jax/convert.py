@@ -25,8 +25,7 @@ _SAME = (
     "keypoint_norm_type", "root_joint", "projection_type", "perspective_depth_threshold",
     "argmin_translation", "camera_translation", "camera_xy_translation", "depth_offset",
     "camera_scale", "z_augment", "z_augment_rot_angle", "z_equivariance",
-    "z_equivariance_rot_angle", "independent_phi_for_aug", "huber_scaling",
-    "reprojection_normalization", "squared_reprojection_loss", "replace_keypoints_with_input",
+    "z_equivariance_rot_angle", "independent_phi_for_aug", "replace_keypoints_with_input",
     "weight_init_std",
 )
 _CANON = {
@@ -34,8 +33,9 @@ _CANON = {
     "n_fully_connected": "canonicalization_n_fully_connected",
     "n_rand_samples": "n_rand_samples", "rot_angle": "canonicalization_rot_angle",
 }
-# Training-only or plotting options of the release: accepted, not needed for inference.
-_IGNORED = ("loss_weights", "log_vars", "connectivity_setup")
+# Training-only or plotting options of the release (its loss options are
+# ``losses.LossConfig``'s here): accepted, not needed for inference.
+_IGNORED = ("loss_weights", "log_vars", "connectivity_setup") + model.MOVED_TO_LOSS
 
 
 def model_config_from_official(config: dict[str, Any]) -> ModelConfig:

@@ -1,10 +1,11 @@
-"""C3DPO's objective: the batch reductions of its terms, their weights and the loss.
+"""C3DPO's objective: every loss term, its options, its reduction and its weight.
 
 Glossary: B batch, N keypoints, S canonicalisation samples. The per-example forward
-(``model.forward_train``, vmapped over the batch) returns elementwise terms (the
-pseudo-Huber penalty, ``penalties.huber``, applied per point); this module owns the
-one explicit masked reduction of each, so the normalisation is written down in one
-place, and the weighted objective ``make_loss_fn`` that the train step differentiates.
+(``model.forward_train``, vmapped over the batch) returns geometry: squared distances
+per point. This module owns the rest, with its options in ``LossConfig``: the penalty of
+each point (pseudo-Huber, ``huber``, or the plain square), the one explicit
+masked reduction of each term (so the normalisation is written down in one place), the
+weights, and the objective ``make_loss_fn`` that the train step differentiates.
 
 Paper: eq. 4 (l1, reprojection), eq. 5 (l2, canonicalisation), eq. 6 (l3, the
 reprojection loss with the shape coefficients of an in-plane rotated copy).
@@ -17,10 +18,21 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from c3dpo_jax import model
-from c3dpo_jax.penalties import huber
+from c3dpo_jax import geometry, model
 
-__all__ = ["LossConfig", "canonicalisation", "huber", "make_loss_fn", "reprojection"]
+__all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "huber",
+           "make_loss_fn", "reprojection"]
+
+
+def huber(dist_sq: Float[Array, "*S"], scaling: float) -> Float[Array, "*S"]:
+    """Pseudo-Huber of a squared distance: ``(sqrt(1 + d2/eps^2) - 1) * eps``.
+
+    Written on the squared distance so its gradient is finite at a perfect fit
+    (the norm itself is not differentiable at 0), and in the algebraically equal form
+    ``d2 / (eps (sqrt(1 + d2/eps^2) + 1))``, which has no cancellation for tiny
+    residuals in float32.
+    """
+    return dist_sq / (scaling * (jnp.sqrt(1.0 + dist_sq / scaling**2) + 1.0))
 
 
 def reprojection(
@@ -41,6 +53,15 @@ def reprojection(
     raise ValueError(f"unknown reprojection_normalization {normalization!r}")
 
 
+def canonicalisation_per_sample(
+    dist_sq: Float[Array, "B S N"], class_mask: Float[Array, "B N"], huber_scaling: float
+) -> Float[Array, "B S"]:
+    """Eq. 5 per example and rotation: the pseudo-Huber penalty of each point's squared
+    distance, averaged over the points of the example's class."""
+    return jax.vmap(jax.vmap(geometry.masked_mean, in_axes=(0, None)))(
+        huber(dist_sq, huber_scaling), class_mask)
+
+
 def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     """Mean over examples and random rotations of the per-sample point means."""
     if canon.shape[-1] == 0:
@@ -48,20 +69,34 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     return jnp.mean(canon)
 
 
+_NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
+
+
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
-    """Weights of the objective ``w_reprojection * l_repro + w_canonicalization * l_canon``.
+    """The objective ``w_reprojection * l_repro + w_canonicalization * l_canon`` and the
+    options of its terms (the release's names; the release keeps them with the model).
 
-    ``canonicalization_ramp=(first, last)`` (steps) moves the canonicalisation weight
-    linearly from ``w_canonicalization`` at step ``first`` to ``w_canonicalization_final``
-    at step ``last`` (``first == last``: a jump); empty: the weight is constant."""
+    ``huber_scaling``: epsilon of the pseudo-Huber penalty of both terms;
+    ``squared_reprojection_loss``: the plain squared distance in the reprojection term
+    instead; ``reprojection_normalization``: ``kp_total_count`` or ``kp_count_per_image``
+    (see ``reprojection``). ``canonicalization_ramp=(first, last)`` (steps) moves the
+    canonicalisation weight linearly from ``w_canonicalization`` at step ``first`` to
+    ``w_canonicalization_final`` at step ``last`` (``first == last``: a jump); empty: the
+    weight is constant."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0
     w_canonicalization_final: float | None = None
     canonicalization_ramp: tuple[int, ...] = ()
+    huber_scaling: float = 0.01
+    reprojection_normalization: str = "kp_total_count"
+    squared_reprojection_loss: bool = False
 
     def __post_init__(self):
+        if self.reprojection_normalization not in _NORMALIZATIONS:
+            raise ValueError(f"unknown reprojection_normalization "
+                             f"{self.reprojection_normalization!r}; known: {_NORMALIZATIONS}")
         ramp = tuple(int(s) for s in self.canonicalization_ramp)
         object.__setattr__(self, "canonicalization_ramp", ramp)
         if ramp and (len(ramp) != 2 or not 0 <= ramp[0] <= ramp[1]
@@ -70,6 +105,10 @@ class LossConfig:
                 "loss.canonicalization_ramp must be (first_step, last_step) with "
                 "0 <= first_step <= last_step, and loss.w_canonicalization_final set; got "
                 f"{ramp} and {self.w_canonicalization_final}")
+
+    def penalty(self, dist_sq):
+        """The reprojection term of each point from its squared distance (eq. 4)."""
+        return dist_sq if self.squared_reprojection_loss else huber(dist_sq, self.huber_scaling)
 
     def canonicalization_weight(self, step):
         """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
@@ -97,10 +136,10 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
             out_axes=(0, None), axis_name="batch",
         )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
-        l_repro = reprojection(
-            terms["repro"], batch["vis"], model_cfg.reprojection_normalization
-        )
-        l_canon = canonicalisation(terms["canon"])
+        l_repro = reprojection(loss_cfg.penalty(terms["dist_sq"]), batch["vis"],
+                               loss_cfg.reprojection_normalization)
+        l_canon = canonicalisation(canonicalisation_per_sample(
+            terms["canon_dist_sq"], batch["class_mask"], loss_cfg.huber_scaling))
         w_canon = loss_cfg.canonicalization_weight(step)
         objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
         metrics = {

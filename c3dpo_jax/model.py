@@ -6,7 +6,9 @@ rows: ``kp (N, 2)``, ``X (N, 3)``; rotations act as ``X @ R.T`` (see ``so3``).
 ``forward_train`` must run under ``jax.vmap(..., axis_name="batch")`` (BatchNorm
 takes its statistics over that axis); ``forward_eval`` uses running statistics and
 runs anywhere. Paper equations: reprojection (eq. 4, l1), canonicalisation (eq. 5,
-l2), in-plane equivariance (eq. 6, l3).
+l2), in-plane equivariance (eq. 6, l3). The model is geometry: it returns squared
+distances, and ``losses`` turns them into the objective (its penalty, weights and
+reductions, with their options in ``losses.LossConfig``).
 """
 
 import contextlib
@@ -22,7 +24,6 @@ from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, so3
 from c3dpo_jax.networks import C3DPONet
-from c3dpo_jax.penalties import huber
 from c3dpo_jax.types import Kp2, Vis
 
 Variables = dict[str, Any]
@@ -57,7 +58,8 @@ class Prediction(Mapping):
         for perspective models).
       kp_norm: (N, 2) the network's normalised input.
       kp_mean: (2,) the centre removed from the input (calibrated for perspective).
-      repro: (N,) pseudo-Huber reprojection error of each point, normalised, unmasked.
+      dist_sq: (N,) squared distance of each reprojected point to the normalised input,
+        unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
     """
 
     shape_image_coord: Leaf
@@ -71,7 +73,7 @@ class Prediction(Mapping):
     kp_reprojected: Leaf
     kp_norm: Leaf
     kp_mean: Leaf
-    repro: Leaf
+    dist_sq: Leaf
 
     def __getitem__(self, name: str) -> Leaf:
         if name not in _PREDICTION_FIELDS:
@@ -116,9 +118,6 @@ class ModelConfig:
     canonicalization_n_fully_connected: int = 1024
     n_rand_samples: int = 4
     canonicalization_rot_angle: float = 3.141592653589793
-    huber_scaling: float = 0.01
-    reprojection_normalization: str = "kp_total_count"  # | "kp_count_per_image"
-    squared_reprojection_loss: bool = False
     replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
     # Matmul precision of the forward passes (params stay float32): "default" (the
@@ -130,8 +129,10 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d) -> "ModelConfig":
-        """From a dict or ConfigDict; unknown keys are an error, not silently dropped."""
-        d = dict(d)
+        """From a dict or ConfigDict; unknown keys are an error, not silently dropped.
+        The loss options that older runs saved in their model section (now
+        ``losses.LossConfig``'s) are skipped: they change nothing in the model."""
+        d = {k: v for k, v in dict(d).items() if k not in MOVED_TO_LOSS}
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:
@@ -141,6 +142,9 @@ class ModelConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+
+# The release's model options that are loss options here (``losses.LossConfig``).
+MOVED_TO_LOSS = ("huber_scaling", "reprojection_normalization", "squared_reprojection_loss")
 
 _PRECISIONS = ("default", "bfloat16", "tensorfloat32", "float32", "high", "highest",
                "bfloat16_3x")
@@ -255,9 +259,11 @@ def forward_train(
     """Training forward pass of one example, under ``vmap(axis_name="batch")``.
 
     Returns:
-      ``(terms, batch_stats)``: per-point reprojection errors ``repro`` (N,) (pseudo-
-      Huber, unmasked), per-sample canonicalisation errors ``canon`` (S,) (masked
-      point means) and diagnostics; the updated BatchNorm statistics.
+      ``(terms, batch_stats)``: ``dist_sq`` (N,), the squared distance of each
+      reprojected point to the normalised input (unmasked), and ``canon_dist_sq``
+      (S, N), the squared distance of each point of Psi's reconstruction of each randomly
+      rotated canonical shape to that shape (S = 0 without Psi); the updated BatchNorm
+      statistics. ``losses`` penalises and reduces them.
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
@@ -295,10 +301,9 @@ def forward_train(
     r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
     x_cam = (x_cam + t[None]) @ r_aug3  # applies R_aug^T to column vectors
     _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
-    repro = dist_sq if cfg.squared_reprojection_loss else huber(dist_sq, cfg.huber_scaling)
-    terms = {"repro": repro, "canon": jnp.zeros((0,))}
+    terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints))}
     if cfg.canonicalization:
-        terms["canon"], stats = _canonicalisation(
+        terms["canon_dist_sq"], stats = _canonicalisation(
             net, params, stats, x_canon, class_mask, k_canon, cfg
         )
     return terms, stats
@@ -318,8 +323,7 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
             method="psi", mutable=["batch_stats"],
         )
         x_hat = _shape(net, params, alpha_psi, class_mask)
-        err = huber(jnp.sum((x_hat - x_canon) ** 2, axis=-1), cfg.huber_scaling)
-        return geometry.masked_mean(err, class_mask), upd["batch_stats"]
+        return jnp.sum((x_hat - x_canon) ** 2, axis=-1), upd["batch_stats"]
 
     # Psi's BatchNorm statistics are means over the samples: one value (out_axes None).
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
@@ -363,5 +367,5 @@ def forward_eval(
         kp_reprojected=reproj_image,
         kp_norm=kp_norm,
         kp_mean=centre,
-        repro=huber(dist_sq, cfg.huber_scaling),
+        dist_sq=dist_sq,
     )

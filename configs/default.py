@@ -57,12 +57,15 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         ),
     )
     c.model = dataclasses.asdict(ModelConfig())
-    # canonicalization_ramp=(first, last) steps: the canonicalisation weight moves linearly
-    # to w_canonicalization_final between them (losses.LossConfig); () keeps it constant.
+    # losses.LossConfig: the weights (canonicalization_ramp=(first, last) steps moves the
+    # canonicalisation weight linearly to w_canonicalization_final; () keeps it constant)
+    # and the options of the terms (the release keeps them with the model).
     c.loss = dict(
         w_reprojection=1.0, w_canonicalization=1.0,
         w_canonicalization_final=ml_collections.config_dict.placeholder(float),
         canonicalization_ramp=(),
+        huber_scaling=0.01, reprojection_normalization="kp_total_count",
+        squared_reprojection_loss=False,
     )
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,

@@ -53,8 +53,38 @@ def test_canonicalisation_is_the_mean_and_zero_without_samples():
     assert float(losses.canonicalisation(jnp.zeros((3, 0)))) == 0.0
 
 
+def test_canonicalisation_per_sample_is_the_class_mean_of_the_penalty():
+    rng = np.random.default_rng(2)
+    d2 = rng.uniform(size=(3, 4, 6)) ** 3
+    mask = (rng.uniform(size=(3, 6)) > 0.3).astype(float)
+    mask[1] = 0  # an example with no point of its class: 0, not NaN
+    eps = 0.05
+    pen = (np.sqrt(1 + d2 / eps**2) - 1) * eps
+    expected = (pen * mask[:, None]).sum(-1) / np.maximum(mask.sum(-1), 1)[:, None]
+    got = losses.canonicalisation_per_sample(jnp.asarray(d2), jnp.asarray(mask), eps)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-8)
+
+
+def test_loss_config_owns_the_penalty_and_checks_its_options():
+    d2 = jnp.array([0.0, 1e-4, 4.0])
+    np.testing.assert_allclose(losses.LossConfig(huber_scaling=0.1).penalty(d2),
+                               losses.huber(d2, 0.1))
+    np.testing.assert_array_equal(losses.LossConfig(squared_reprojection_loss=True).penalty(d2), d2)
+    with pytest.raises(ValueError, match="reprojection_normalization 'per_nothing'"):
+        losses.LossConfig(reprojection_normalization="per_nothing")
+
+
 def test_the_objective_lives_here_and_stays_importable_from_train():
-    from c3dpo_jax import model, penalties, train
+    import dataclasses
+
+    from c3dpo_jax import model, train
 
     assert train.LossConfig is losses.LossConfig and train.make_loss_fn is losses.make_loss_fn
-    assert losses.huber is penalties.huber is model.huber
+    loss_fields = {f.name for f in dataclasses.fields(losses.LossConfig)}
+    model_fields = {f.name for f in dataclasses.fields(model.ModelConfig)}
+    assert set(model.MOVED_TO_LOSS) <= loss_fields and not set(model.MOVED_TO_LOSS) & model_fields
+    assert not hasattr(model, "huber")  # the model returns distances; the loss penalises them
+    # A model section saved with the loss options (older runs, the release) still loads.
+    legacy = dict(model.ModelConfig().to_dict(), huber_scaling=0.01,
+                  reprojection_normalization="kp_total_count", squared_reprojection_loss=False)
+    assert model.ModelConfig.from_dict(legacy) == model.ModelConfig()

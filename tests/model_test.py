@@ -55,8 +55,8 @@ def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
     kp = jnp.broadcast_to(jnp.asarray(shape[:, :2]) + 5.0, (4, 8, 2)) * vis[..., None]
     batch = {"kp": kp, "vis": vis, "class_mask": jnp.ones((4, 8))}
     terms, _ = _train_terms(cfg, variables, batch, key)
-    np.testing.assert_allclose(terms["repro"] * vis, 0.0, atol=1e-5)
-    np.testing.assert_allclose(terms["canon"], 0.0, atol=1e-6)  # Psi undoes any rotation here
+    np.testing.assert_allclose(terms["dist_sq"] * vis, 0.0, atol=1e-5)
+    np.testing.assert_allclose(terms["canon_dist_sq"], 0.0, atol=1e-6)  # Psi undoes any rotation
     out = model.forward_eval(variables, kp[0], vis[0], jnp.ones(8), None, cfg)
     np.testing.assert_allclose(out["shape_image_coord"][:, 2], shape[:, 2] - 0.0, atol=1e-5)
 
@@ -64,7 +64,6 @@ def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
 @pytest.mark.parametrize("variant", [
     {}, {"z_equivariance": False}, {"canonicalization": False}, {"independent_phi_for_aug": False},
     {"z_augment": True}, {"camera_translation": True, "camera_scale": True},
-    {"reprojection_normalization": "kp_count_per_image"},
 ])
 def test_invisible_coordinates_change_nothing_in_training(key, variant):
     cfg = dataclasses.replace(CFG, **variant)
@@ -74,10 +73,10 @@ def test_invisible_coordinates_change_nothing_in_training(key, variant):
     terms, stats = _train_terms(cfg, variables, batch, key)
     terms2, stats2 = _train_terms(cfg, variables, moved, key)
     vis = batch["vis"]
-    np.testing.assert_allclose(terms["repro"] * vis, terms2["repro"] * vis, atol=1e-6)
-    np.testing.assert_allclose(terms["canon"], terms2["canon"], atol=1e-6)
-    assert terms["canon"].shape == ((6, 3) if cfg.canonicalization else (6, 0))
-    assert np.all(np.isfinite(terms["repro"]))
+    np.testing.assert_allclose(terms["dist_sq"] * vis, terms2["dist_sq"] * vis, atol=1e-6)
+    np.testing.assert_allclose(terms["canon_dist_sq"], terms2["canon_dist_sq"], atol=1e-6)
+    assert terms["canon_dist_sq"].shape == ((6, 3, 8) if cfg.canonicalization else (6, 0, 8))
+    assert np.all(np.isfinite(terms["dist_sq"]))
 
 
 def test_eval_keeps_visible_input_points_and_is_batch_independent():

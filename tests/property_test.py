@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from c3dpo_jax import geometry, losses, model, so3
 from c3dpo_jax.data import json_dataset
-from c3dpo_jax.penalties import huber
+from c3dpo_jax.losses import huber
 from c3dpo_jax.reconstruct import C3DPOParams, reconstruct
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, width=32)

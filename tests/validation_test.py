@@ -41,7 +41,7 @@ BAD = [
     ("train.samples_per_epoch", -10, "config.train.samples_per_epoch=-10 (must be an integer"),
     ("model.shape_basis_size", 0, "config.model.shape_basis_size=0 (must be an integer >= 1)"),
     ("model.n_keypoints", 0, "config.model.n_keypoints=0 (must be an integer >= 1)"),
-    ("model.huber_scaling", 0.0, "config.model.huber_scaling=0.0 (must be a finite number > 0)"),
+    ("loss.huber_scaling", 0.0, "config.loss.huber_scaling=0.0 (must be a finite number > 0)"),
     ("model.projection_type", "fisheye", "(must be one of 'orthographic', 'perspective')"),
     ("optim.lr", -0.001, "config.optim.lr=-0.001 (must be a finite number > 0)"),
     ("optim.lr", 0.0, "config.optim.lr=0.0 (must be a finite number > 0)"),
