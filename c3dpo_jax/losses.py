@@ -72,6 +72,20 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
 _NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
 
 
+def ramp_problem(ramp, final) -> str | None:
+    """What is wrong with a canonicalisation ramp and its final weight (None: nothing),
+    one line; ``LossConfig`` raises it and ``validation`` lists it."""
+    if not ramp:
+        return None
+    if (len(ramp) != 2 or any(not isinstance(r, int) or isinstance(r, bool) or r < 0
+                              for r in ramp)
+            or ramp[0] > ramp[1] or not isinstance(final, (int, float)) or not final >= 0):
+        return (f"config.loss.canonicalization_ramp={tuple(ramp)} with "
+                f"config.loss.w_canonicalization_final={final} (the ramp is (first_step, "
+                "last_step), 0 <= first <= last, and the final weight a number >= 0)")
+    return None
+
+
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
     """The objective ``w_reprojection * l_repro + w_canonicalization * l_canon`` and the
@@ -97,14 +111,11 @@ class LossConfig:
         if self.reprojection_normalization not in _NORMALIZATIONS:
             raise ValueError(f"unknown reprojection_normalization "
                              f"{self.reprojection_normalization!r}; known: {_NORMALIZATIONS}")
-        ramp = tuple(int(s) for s in self.canonicalization_ramp)
-        object.__setattr__(self, "canonicalization_ramp", ramp)
-        if ramp and (len(ramp) != 2 or not 0 <= ramp[0] <= ramp[1]
-                     or self.w_canonicalization_final is None):
-            raise ValueError(
-                "loss.canonicalization_ramp must be (first_step, last_step) with "
-                "0 <= first_step <= last_step, and loss.w_canonicalization_final set; got "
-                f"{ramp} and {self.w_canonicalization_final}")
+        problem = ramp_problem(self.canonicalization_ramp, self.w_canonicalization_final)
+        if problem:
+            raise ValueError(problem)
+        object.__setattr__(self, "canonicalization_ramp",
+                           tuple(int(s) for s in self.canonicalization_ramp))
 
     def penalty(self, dist_sq):
         """The reprojection term of each point from its squared distance (eq. 4)."""

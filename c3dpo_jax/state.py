@@ -29,6 +29,9 @@ class TrainState:
         return {"params": self.params, "batch_stats": self.batch_stats}
 
 
+SCHEDULES = ("multistep", "cosine")
+
+
 @dataclasses.dataclass(frozen=True)
 class OptimConfig:
     """Optimiser settings; the defaults are the release's (SGD, lr 1e-3, x0.1 at milestones)."""
@@ -45,6 +48,11 @@ class OptimConfig:
     schedule: str = "multistep"
     cosine_steps: int = 0
 
+    def __post_init__(self):
+        problem = schedule_problem(self.schedule, self.cosine_steps)
+        if problem:
+            raise ValueError(problem)
+
     @classmethod
     def from_dict(cls, d) -> "OptimConfig":
         d = dict(d)
@@ -52,18 +60,25 @@ class OptimConfig:
         return cls(**d)
 
 
+def schedule_problem(schedule, cosine_steps) -> str | None:
+    """What is wrong with a learning-rate schedule's settings (None: nothing), one line;
+    ``OptimConfig`` raises it and ``validation`` lists it."""
+    if schedule not in SCHEDULES:
+        return (f"config.optim.schedule={schedule!r} (must be one of "
+                f"{', '.join(map(repr, SCHEDULES))})")
+    if schedule == "cosine" and not (isinstance(cosine_steps, int) and cosine_steps >= 1):
+        return "config.optim.cosine_steps must be >= 1 with optim.schedule='cosine'"
+    return None
+
+
 def make_schedule(cfg: OptimConfig, steps_per_epoch: int) -> optax.Schedule:
     """Multistep decay with milestones given in epochs (converted to steps), or a cosine
     decay to 0 over ``cosine_steps``; optional linear warm-up before either."""
-    if cfg.schedule == "cosine":
-        if cfg.cosine_steps <= 0:
-            raise ValueError("config.optim.cosine_steps must be > 0 with optim.schedule='cosine'")
+    if cfg.schedule == "cosine":  # OptimConfig has checked the settings
         schedule = optax.cosine_decay_schedule(cfg.lr, cfg.cosine_steps)
-    elif cfg.schedule == "multistep":
+    else:
         boundaries = {int(m) * steps_per_epoch: cfg.gamma for m in cfg.lr_milestones}
         schedule = optax.piecewise_constant_schedule(cfg.lr, boundaries)
-    else:
-        raise ValueError(f"config.optim.schedule={cfg.schedule!r}: 'multistep' or 'cosine'")
     if cfg.warmup_steps > 0:
         warmup = optax.linear_schedule(0.0, cfg.lr, cfg.warmup_steps)
         schedule = optax.join_schedules([warmup, schedule], [cfg.warmup_steps])

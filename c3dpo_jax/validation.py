@@ -14,6 +14,8 @@ import dataclasses
 import math
 from typing import Any
 
+from c3dpo_jax import losses, state
+
 # Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
 PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
 OPTIMIZERS = ("sgd", "adam", "adamw")  # state.make_optimizer
@@ -124,7 +126,6 @@ RULES: dict[str, Range | OneOf] = {
     "optim.weight_decay": NON_NEGATIVE,
     "optim.gamma": POSITIVE,
     "optim.warmup_steps": COUNT,
-    "optim.schedule": OneOf(("multistep", "cosine")),  # state.make_schedule
     "optim.cosine_steps": COUNT,
     "train.batch_size": POSITIVE_INT,
     "train.samples_per_epoch": POSITIVE_INT,
@@ -171,22 +172,16 @@ def _cross_field(cfg: dict) -> list[str]:
                 f"config.optim.lr_milestones={tuple(milestones)} (every milestone "
                 f"must be {COUNT}, in epochs)"
             )
-    if get("optim.schedule") == "cosine" and get("optim.cosine_steps") in (0, _MISSING):
-        problems.append("config.optim.cosine_steps must be >= 1 with optim.schedule='cosine'")
+    # The schedule's and the ramp's rules belong to their dataclasses, which ask them.
+    schedule = get("optim.schedule")
+    if schedule is not _MISSING:
+        cosine_steps = get("optim.cosine_steps")
+        problems.append(state.schedule_problem(schedule,
+                                               0 if cosine_steps is _MISSING else cosine_steps))
     ramp, final = get("loss.canonicalization_ramp"), get("loss.w_canonicalization_final")
-    if ramp not in (_MISSING, None, ()) and (
-        len(ramp) != 2
-        or any(r not in COUNT for r in ramp)
-        or ramp[0] > ramp[1]
-        or final in (_MISSING, None)
-        or final not in NON_NEGATIVE
-    ):
-        problems.append(
-            f"config.loss.canonicalization_ramp={tuple(ramp)} with "
-            f"config.loss.w_canonicalization_final={None if final is _MISSING else final} "
-            "(the ramp is (first_step, last_step), 0 <= first <= last, and the final weight "
-            "a number >= 0)"
-        )
+    if ramp is not _MISSING:
+        problems.append(losses.ramp_problem(ramp, None if final is _MISSING else final))
+    problems = [p for p in problems if p]
     if get("train.num_steps") == 0 and get("train.epochs") == 0:
         problems.append(
             "config.train.num_steps=0 and config.train.epochs=0 (nothing to "
