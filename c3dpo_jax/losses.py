@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from c3dpo_jax import geometry, model
+from c3dpo_jax import geometry, model, so3
 
-__all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "huber",
-           "make_loss_fn", "reprojection"]
+__all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "draw_rotations",
+           "huber", "make_loss_fn", "reprojection"]
 
 
 def huber(dist_sq: Float[Array, "*S"], scaling: float) -> Float[Array, "*S"]:
@@ -133,6 +133,26 @@ class LossConfig:
             self.w_canonicalization_final - self.w_canonicalization)
 
 
+def draw_rotations(key: jax.Array, cfg: model.ModelConfig) -> model.TrainRotations:
+    """The random rotations of one training example: the in-plane augmentation, the
+    equivariance copy's in-plane rotation (eq. 6) and Psi's ``n_rand_samples`` rotations
+    (eq. 5; any rotation, uniform on SO(3), when ``canonicalization_rot_angle`` is pi: the
+    release's axis-angle draw with a uniform angle is not uniform)."""
+    k_aug, k_eq, k_canon = jax.random.split(key, 3)
+    r_aug = (so3.in_plane_rotation(k_aug, cfg.z_augment_rot_angle) if cfg.z_augment
+             else jnp.eye(2))
+    r_eq = (so3.in_plane_rotation(k_eq, cfg.z_equivariance_rot_angle) if cfg.z_equivariance
+            else jnp.eye(2))
+    if cfg.canonicalization:
+        angle = cfg.canonicalization_rot_angle
+        max_angle = None if angle >= jnp.pi else angle
+        rots = jax.vmap(lambda k: so3.random_rotation(k, max_angle))(
+            jax.random.split(k_canon, cfg.n_rand_samples))
+    else:
+        rots = jnp.zeros((0, 3, 3))
+    return model.TrainRotations(augment=r_aug, equivariance=r_eq, canonicalisation=rots)
+
+
 def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
     """``loss_fn(params, batch_stats, batch, key, step=0) -> (objective, (batch_stats,
     metrics))``; ``step`` only matters for a ramped canonicalisation weight."""
@@ -140,13 +160,14 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
     def loss_fn(params, batch_stats, batch, key, step=0):
         variables = {"params": params, "batch_stats": batch_stats}
         keys = jax.random.split(key, batch["vis"].shape[0])
+        rotations = jax.vmap(partial(draw_rotations, cfg=model_cfg))(keys)
         intrinsics = batch.get("intrinsics")
         per_example = partial(model.forward_train, cfg=model_cfg)
         # BatchNorm's statistics are batch means: one value, not one per example.
         terms, stats = jax.vmap(
             per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
             out_axes=(0, None), axis_name="batch",
-        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, keys)
+        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, rotations)
         l_repro = reprojection(loss_cfg.penalty(terms["dist_sq"]), batch["vis"],
                                loss_cfg.reprojection_normalization)
         l_canon = canonicalisation(canonicalisation_per_sample(

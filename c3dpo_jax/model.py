@@ -6,16 +6,17 @@ rows: ``kp (N, 2)``, ``X (N, 3)``; rotations act as ``X @ R.T`` (see ``so3``).
 ``forward_train`` must run under ``jax.vmap(..., axis_name="batch")`` (BatchNorm
 takes its statistics over that axis); ``forward_eval`` uses running statistics and
 runs anywhere. Paper equations: reprojection (eq. 4, l1), canonicalisation (eq. 5,
-l2), in-plane equivariance (eq. 6, l3). The model is geometry: it returns squared
-distances, and ``losses`` turns them into the objective (its penalty, weights and
-reductions, with their options in ``losses.LossConfig``).
+l2), in-plane equivariance (eq. 6, l3). The model is geometry: given an example and
+its random rotations (``TrainRotations``) it returns squared distances, and ``losses``
+draws the rotations and turns the distances into the objective (penalty, reductions,
+weights, with their options in ``losses.LossConfig``).
 """
 
 import contextlib
 import dataclasses
 import functools
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax.struct
 import jax
@@ -88,6 +89,23 @@ class Prediction(Mapping):
 
 
 _PREDICTION_FIELDS = tuple(f.name for f in dataclasses.fields(Prediction))
+
+
+class TrainRotations(NamedTuple):
+    """The random rotations of one training example (drawn by ``losses.draw_rotations``).
+
+    Attributes:
+      augment: (2, 2) in-plane rotation of the input, undone on the output (identity
+        without ``z_augment``).
+      equivariance: (2, 2) in-plane rotation of the second copy whose shape coefficients
+        are used (eq. 6; unused without ``z_equivariance``).
+      canonicalisation: (S, 3, 3) the rotations of the canonical shape that Psi must undo
+        (eq. 5; S = 0 without Psi).
+    """
+
+    augment: Leaf
+    equivariance: Leaf
+    canonicalisation: Leaf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,10 +271,11 @@ def forward_train(
     vis: Vis,
     class_mask: Float[Array, " N"],
     intrinsics: Float[Array, "3 3"] | None,
-    key: jax.Array,
+    rotations: TrainRotations,
     cfg: ModelConfig,
 ) -> tuple[dict[str, Array], dict[str, Any]]:
-    """Training forward pass of one example, under ``vmap(axis_name="batch")``.
+    """Training forward pass of one example, under ``vmap(axis_name="batch")``: a pure
+    function of its inputs and of the example's ``rotations``.
 
     Returns:
       ``(terms, batch_stats)``: ``dist_sq`` (N,), the squared distance of each
@@ -267,7 +286,6 @@ def forward_train(
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
-    k_aug, k_eq, k_canon = jax.random.split(key, 3)
     _, kp_norm, _ = _normalised_input(cfg, kp, vis, intrinsics)
 
     def phi(kp_in, stats):
@@ -278,12 +296,11 @@ def forward_train(
         return out, upd["batch_stats"]
 
     # z_augment: rotate the input in-plane; the rotation is undone on the 3D output.
-    r_aug = so3.in_plane_rotation(k_aug, cfg.z_augment_rot_angle) if cfg.z_augment else jnp.eye(2)
+    r_aug = rotations.augment
     kp_in = kp_norm @ r_aug.T
     if cfg.z_equivariance:
         # Eq. 6: camera from the first copy, shape coefficients from a copy rotated again.
-        r_eq = so3.in_plane_rotation(k_eq, cfg.z_equivariance_rot_angle)
-        copies = jnp.stack([kp_in, kp_in @ r_eq.T])
+        copies = jnp.stack([kp_in, kp_in @ rotations.equivariance.T])
         if cfg.independent_phi_for_aug:
             out1, stats = phi(copies[0], stats)
             out2, stats = phi(copies[1], stats)
@@ -304,18 +321,13 @@ def forward_train(
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints))}
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
-            net, params, stats, x_canon, class_mask, k_canon, cfg
+            net, params, stats, x_canon, class_mask, rotations.canonicalisation
         )
     return terms, stats
 
 
-def _canonicalisation(net, params, stats, x_canon, class_mask, key, cfg):
-    """Eq. 5: Psi must undo S random rotations of the (not detached) canonical shape."""
-    keys = jax.random.split(key, cfg.n_rand_samples)
-    # rot_angle = pi means "any rotation": use the Haar measure (the release's
-    # axis-angle draw with a uniform angle is not uniform on SO(3)).
-    max_angle = None if cfg.canonicalization_rot_angle >= jnp.pi else cfg.canonicalization_rot_angle
-    rots = jax.vmap(lambda k: so3.random_rotation(k, max_angle))(keys)
+def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
+    """Eq. 5: Psi must undo the rotations ``rots`` of the (not detached) canonical shape."""
 
     def one(rot):
         alpha_psi, upd = net.apply(

@@ -88,3 +88,30 @@ def test_the_objective_lives_here_and_stays_importable_from_train():
     legacy = dict(model.ModelConfig().to_dict(), huber_scaling=0.01,
                   reprojection_normalization="kp_total_count", squared_reprojection_loss=False)
     assert model.ModelConfig.from_dict(legacy) == model.ModelConfig()
+
+
+def test_rotations_of_a_training_example_follow_the_model_config():
+    import dataclasses
+
+    import jax
+
+    from c3dpo_jax import model
+
+    cfg = model.ModelConfig(z_augment=True, z_augment_rot_angle=0.2, z_equivariance_rot_angle=0.1,
+                            n_rand_samples=5)
+    rots = jax.vmap(lambda k: losses.draw_rotations(k, cfg))(
+        jax.random.split(jax.random.key(0), 200))
+    for r2, limit in ((rots.augment, 0.2), (rots.equivariance, 0.1)):
+        angles = np.arctan2(np.asarray(r2[:, 1, 0]), np.asarray(r2[:, 0, 0]))
+        assert np.abs(angles).max() <= limit + 1e-6 and np.abs(angles).max() > 0.8 * limit
+        np.testing.assert_allclose(np.einsum("bij,bkj->bik", r2, r2), np.tile(np.eye(2), (200, 1, 1)),
+                                   atol=1e-5)
+    psi = np.asarray(rots.canonicalisation)
+    assert psi.shape == (200, 5, 3, 3)
+    np.testing.assert_allclose(np.linalg.det(psi), 1.0, atol=1e-5)
+    # Off: identities, and no rotation for Psi.
+    off = losses.draw_rotations(jax.random.key(1), dataclasses.replace(
+        cfg, z_augment=False, z_equivariance=False, canonicalization=False))
+    np.testing.assert_array_equal(off.augment, np.eye(2))
+    np.testing.assert_array_equal(off.equivariance, np.eye(2))
+    assert off.canonicalisation.shape == (0, 3, 3)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from c3dpo_jax import model
+from c3dpo_jax import losses, model
 from c3dpo_jax.data import synthetic
 
 CFG = model.ModelConfig(
@@ -27,9 +27,10 @@ def _batch(n=6, seed=0):
 @partial(jax.jit, static_argnums=0)  # one compile per config instead of op-by-op dispatch
 def _train_terms(cfg, variables, batch, key):
     keys = jax.random.split(key, batch["vis"].shape[0])
+    rotations = jax.vmap(partial(losses.draw_rotations, cfg=cfg))(keys)
     fn = partial(model.forward_train, cfg=cfg)
     return jax.vmap(fn, in_axes=(None, 0, 0, 0, None, 0), axis_name="batch")(
-        variables, batch["kp"], batch["vis"], batch["class_mask"], None, keys)
+        variables, batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
 
 
 def _perfect_variables(cfg, shape):
@@ -124,6 +125,7 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
                        cfg)
     fn = partial(model.forward_train, variables, cfg=cfg)
     keys = jax.random.split(jax.random.key(1), 6)
+    rotations = jax.vmap(partial(losses.draw_rotations, cfg=cfg))(keys)
     jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch")(
-        batch["kp"], batch["vis"], batch["class_mask"], None, keys)
+        batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
     assert seen == ["highest", "highest"]
