@@ -74,6 +74,24 @@ def smoke_subprocess_env():
     return make
 
 
+@pytest.fixture(scope="session")
+def load_script():
+    """``load(path) -> module``: a script of the repository (``experiments/...``, which is
+    not a package) imported from its path relative to the repository root."""
+    import importlib.util
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+    def load(path: str):
+        name = path.removesuffix(".py").replace("/", "_")
+        spec = importlib.util.spec_from_file_location(name, os.path.join(root, path))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
+
+
 @pytest.fixture
 def key():
     return jax.random.key(0)

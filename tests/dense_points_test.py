@@ -1,6 +1,5 @@
 """experiments/dense_points: the runs' CLI calls, the joints' scores and the report."""
 
-import importlib.util
 import json
 import os
 
@@ -12,15 +11,11 @@ from c3dpo_jax import baselines, evaluation, model
 from c3dpo_jax.reconstruct import C3DPOParams, reconstruct, save_workdir
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-EXP = os.path.join(ROOT, "experiments", "dense_points")
 
 
 @pytest.fixture(scope="module")
-def dense():
-    spec = importlib.util.spec_from_file_location("dense_points_run", os.path.join(EXP, "run.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def dense(load_script):
+    return load_script("experiments/dense_points/run.py")
 
 
 def test_a_run_is_the_humans_config_with_k_points_and_the_asked_steps(dense, monkeypatch):

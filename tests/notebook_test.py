@@ -9,13 +9,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NOTEBOOK = os.path.join(ROOT, "experiments", "notebook", "c3dpo_quickstart.ipynb")
 
 
-def test_notebook_file_is_what_the_generator_writes(tmp_path, monkeypatch):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "make_quickstart", os.path.join(ROOT, "experiments", "notebook", "make_quickstart.py"))
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
+def test_notebook_file_is_what_the_generator_writes(tmp_path, monkeypatch, load_script):
+    gen = load_script("experiments/notebook/make_quickstart.py")
     fresh = nbformat.v4.new_notebook(cells=gen.CELLS)
     stored = nbformat.read(NOTEBOOK, as_version=4)
     assert [c.source for c in fresh.cells] == [c.source for c in stored.cells]

@@ -1,22 +1,15 @@
 """experiments/robustness: the corruption of the views and the grid's table and figure."""
 
-import importlib.util
 import json
 import os
 
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-EXP = os.path.join(ROOT, "experiments", "robustness")
-
 
 @pytest.fixture(scope="module")
-def robustness():
-    spec = importlib.util.spec_from_file_location("robustness_run", os.path.join(EXP, "run.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def robustness(load_script):
+    return load_script("experiments/robustness/run.py")
 
 
 def test_corruption_adds_noise_of_the_asked_size_and_hides_points(robustness):

@@ -38,15 +38,6 @@ sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
 from runner import is_finished, run_all  # noqa: E402
 
-FLAGS = flags.FLAGS
-flags.DEFINE_enum("part", "report", ["cost", "accuracy", "report"], "what to run")
-flags.DEFINE_list("cost_counts", ["17", "517", "2017", "6907"], "keypoint counts benchmarked")
-flags.DEFINE_list("counts", ["17", "517", "2017"], "keypoint counts trained")
-flags.DEFINE_list("seeds", ["0", "1", "2"], "training seeds")
-flags.DEFINE_integer("steps", 3000, "training steps of every run")
-flags.DEFINE_string("dense_out", os.path.join(HERE, "results"), "runs, tables, figure")
-flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
-
 N_JOINTS = 17
 
 
@@ -182,22 +173,36 @@ def _figure(out: str, cost: dict, acc: dict) -> None:
 
 def main(argv):
     del argv
-    out = FLAGS.dense_out
-    cost_counts = [int(k) for k in FLAGS.cost_counts]
-    counts, seeds = [int(k) for k in FLAGS.counts], [int(s) for s in FLAGS.seeds]
+    fl = flags.FLAGS
+    out = fl.dense_out
+    cost_counts = [int(k) for k in fl.cost_counts]
+    counts, seeds = [int(k) for k in fl.counts], [int(s) for s in fl.seeds]
     if min(cost_counts + counts) < N_JOINTS:
         raise app.UsageError(f"keypoint counts start at the {N_JOINTS} joints")
-    if FLAGS.part == "cost":
+    if fl.part == "cost":
         run_cost(out, cost_counts)
-    elif FLAGS.part == "accuracy":
-        jobs = [(w, command(k, s, FLAGS.steps, w)) for k in sorted(counts, reverse=True)
+    elif fl.part == "accuracy":
+        jobs = [(w, command(k, s, fl.steps, w)) for k in sorted(counts, reverse=True)
                 for s in seeds if not is_finished(w := os.path.join(out, "runs", run_name(k, s)))]
-        run_all(jobs, FLAGS.jobs, out)  # the slowest first
-    text = report(out, cost_counts, counts, seeds, FLAGS.steps)
+        run_all(jobs, fl.jobs, out)  # the slowest first
+    text = report(out, cost_counts, counts, seeds, fl.steps)
     with open(os.path.join(out, "dense_points.md"), "w") as f:
         f.write(text)
     print(text)
 
 
+def _define_flags() -> None:
+    """Defined only when run as a script, so that tests can import this module beside
+    other experiments' scripts that define flags of the same names."""
+    flags.DEFINE_enum("part", "report", ["cost", "accuracy", "report"], "what to run")
+    flags.DEFINE_list("cost_counts", ["17", "517", "2017", "6907"], "keypoint counts benchmarked")
+    flags.DEFINE_list("counts", ["17", "517", "2017"], "keypoint counts trained")
+    flags.DEFINE_list("seeds", ["0", "1", "2"], "training seeds")
+    flags.DEFINE_integer("steps", 3000, "training steps of every run")
+    flags.DEFINE_string("dense_out", os.path.join(HERE, "results"), "runs, tables, figure")
+    flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
+
+
 if __name__ == "__main__":
+    _define_flags()
     app.run(main)
