@@ -104,8 +104,8 @@ def test_rotations_of_a_training_example_follow_the_model_config():
     for r2, limit in ((rots.augment, 0.2), (rots.equivariance, 0.1)):
         angles = np.arctan2(np.asarray(r2[:, 1, 0]), np.asarray(r2[:, 0, 0]))
         assert np.abs(angles).max() <= limit + 1e-6 and np.abs(angles).max() > 0.8 * limit
-        np.testing.assert_allclose(np.einsum("bij,bkj->bik", r2, r2), np.tile(np.eye(2), (200, 1, 1)),
-                                   atol=1e-5)
+        np.testing.assert_allclose(np.einsum("bij,bkj->bik", r2, r2),
+                                   np.tile(np.eye(2), (200, 1, 1)), atol=1e-5)
     psi = np.asarray(rots.canonicalisation)
     assert psi.shape == (200, 5, 3, 3)
     np.testing.assert_allclose(np.linalg.det(psi), 1.0, atol=1e-5)
