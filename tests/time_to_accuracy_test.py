@@ -41,6 +41,7 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     with open(os.path.join(out, "runs", "wave__cpu__s0", "eval_results.json")) as f:
         loop = json.load(f)
     assert loop["final"]["step"] == 20 and loop["final"]["mpjpe"] == result["curve"][-1]["mpjpe"]
+    assert result["recipe_steps"] > 20 and not result["ended"]  # the budget stopped it
     assert result["config"]["model"]["n_fully_connected"] == 32
     assert set(result["baselines"]) == {"zero depth", "fitted mean shape", "oracle mean shape",
                                         "fitted PCA basis"}
@@ -79,6 +80,27 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     np.testing.assert_allclose(figures["fitted mean shape (baseline)"],
                                result["baselines"]["fitted mean shape"], rtol=1e-9)
     assert all(np.isfinite(v) for v in figures.values())
+
+
+def test_a_recipe_that_ends_before_the_budget_ends_the_run_and_stands_for_the_later_marks(
+        tmp_path, load_script):
+    seq, out = str(tmp_path / "wave.npz"), str(tmp_path / "results")
+    _sequence(seq)
+    cmd = [sys.executable, os.path.join(EXP, "run.py"), f"--dataset={seq}", "--recipe=cpu",
+           "--budget_s=3", "--eval_every_s=1", "--steps_per_s=10", "--compile_s=1",
+           "--chunk_steps=5", "--views_per_frame=2", f"--out_dir={out}",
+           "--set=train.num_steps=10"] + [f"--set={s}" for s in TINY]
+    subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path))
+    with open(os.path.join(out, "wave__cpu__s0.json")) as f:
+        result = json.load(f)
+    # The CLI's run ends at step 10 (clock 2 s), before the 3 s budget's 20 steps.
+    assert [p["step"] for p in result["curve"]] == [5, 10]
+    assert result["recipe_steps"] == 10 and result["ended"]
+    report = load_script("experiments/time_to_accuracy/report.py")
+    final = result["curve"][-1]["mpjpe"]
+    assert report.mpjpe_at(result, 1.5) == result["curve"][0]["mpjpe"]
+    assert report.mpjpe_at(result, 3.0) == report.mpjpe_at(result, 600.0) == final
+    assert np.isnan(report.mpjpe_at(dict(result, ended=False), 3.0))  # stopped for another reason
 
 
 def test_timed_run_stops_at_its_budget_and_measures_its_rate(tmp_path):

@@ -55,10 +55,13 @@ def supervised_by_dataset(results_dir: str) -> dict[str, list[float]]:
 
 def mpjpe_at(run: dict, t: float) -> float:
     """MPJPE of the evaluation made when the run's time reached ``t`` (the first at or
-    after it: runs evaluate at the first chunk boundary past each interval), NaN if
-    the run stopped earlier."""
+    after it: runs evaluate at the first chunk boundary past each interval); the final
+    model's if the recipe had ended before ``t`` (``ended``); NaN if the run stopped
+    earlier for another reason."""
     points = [p for p in run["curve"] if p["t"] >= t - 1e-6]
-    return points[0]["mpjpe"] if points else float("nan")
+    if points:
+        return points[0]["mpjpe"]
+    return run["curve"][-1]["mpjpe"] if run.get("ended") else float("nan")
 
 
 def _cell(values: list[float]) -> str:

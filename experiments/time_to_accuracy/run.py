@@ -21,7 +21,8 @@ for ``humans`` configs/humans.py, which sets its own canonicalisation weight) an
 momentum 0.9, weight decay 5e-4, batch 256).
 
 Timed mode (the default): training stops at the first chunk where the loop's clock reaches
-the budget. Replay mode (``--steps_per_s=R --compile_s=C``): the clock is ``C + step / R``
+the budget, or where the recipe ends (the CLI's run: ``train.num_steps`` or its epochs), if
+that comes first. Replay mode (``--steps_per_s=R --compile_s=C``): the clock is ``C + step / R``
 and the run trains the steps that clock needs to reach the budget, with R and C measured by a
 timed calibration run alone on the machine (``--budget_s=60``; its result holds
 ``steps_per_s`` and ``compile_s``). In both, the test split is scored at the first chunk at
@@ -192,16 +193,18 @@ def run() -> dict:
     c.train.log_every = FLAGS.chunk_steps or (2 if FLAGS.recipe == "official" else 20)
     replay = FLAGS.steps_per_s > 0
     chunk = c.train.log_every
+    recipe_steps = train.RunSpec.from_config(c).total_steps  # where the CLI's run ends
     if replay:  # the clock of a replay: the calibrated compile time, then R steps a second
         def clock(step, train_s):
             return FLAGS.compile_s + step / FLAGS.steps_per_s
-        # The first chunk at or past the budget, as the timed run would stop.
+        # The first chunk at or past the budget, as the timed run would stop, unless the
+        # recipe ends before it.
         needed = FLAGS.steps_per_s * (FLAGS.budget_s - FLAGS.compile_s)
-        c.train.num_steps = max(math.ceil(needed / chunk - 1e-9), 1) * chunk
-    else:  # timed: the loop's own clock, until the budget is spent
+        c.train.num_steps = min(recipe_steps, max(math.ceil(needed / chunk - 1e-9), 1) * chunk)
+    else:  # timed: the loop's own clock, until the budget is spent or the recipe ends
         def clock(step, train_s):
             return train_s
-        c.train.num_steps = 10**9
+        c.train.num_steps = recipe_steps
     next_eval = [FLAGS.eval_every_s]
 
     def should_evaluate(step, train_s):
@@ -236,6 +239,8 @@ def run() -> dict:
         data_seed=FLAGS.data_seed,
         mode="replay" if replay else "wall",
         budget_s=FLAGS.budget_s,
+        recipe_steps=recipe_steps,  # the run's last point is its final model when reached
+        ended=results["final"]["step"] >= recipe_steps,
         steps_per_s=rate,
         compile_s=compile_s,
         n_train=len(train_data),
