@@ -14,6 +14,7 @@ the better of the two is kept (per sample); stress is invariant to the flip.
 """
 
 import numpy as np
+from scipy.spatial.distance import pdist
 
 from c3dpo_jax import baselines
 from c3dpo_jax.data.dataset import KeypointData
@@ -37,24 +38,21 @@ def mpjpe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, np.nd
     return {"mpjpe_orig": orig, "mpjpe_flip": flip, "mpjpe": np.minimum(orig, flip)}
 
 
-def stress(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
-           max_elements: int = 2**24) -> np.ndarray:
-    """Per-sample mean over pairs i < j of | ||X_i - X_j|| - ||X*_i - X*_j|| |.
+def stress(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-sample mean over pairs i < j of points that ``mask`` keeps (0/1, both 1) of
+    | ||X_i - X_j|| - ||X*_i - X*_j|| |; 0 for a sample with fewer than two kept points.
 
-    Computed over blocks of samples of at most ``max_elements`` pair differences each, so
-    that dense points (N(N-1)/2 pairs per sample) do not need memory for all samples at
-    once (517 points x 1,500 samples would take ~5 GB per array)."""
-    n = pred.shape[1]
-    i, j = np.triu_indices(n, k=1)
-    block = max(max_elements // max(len(i), 1), 1)
-    out = []
-    for start in range(0, pred.shape[0], block):
-        sl = slice(start, start + block)
-        d_pred = np.linalg.norm(pred[sl, i] - pred[sl, j], axis=-1)
-        d_gt = np.linalg.norm(gt[sl, i] - gt[sl, j], axis=-1)
-        pair_mask = mask[sl, i] * mask[sl, j]
-        out.append(_masked_mean(np.abs(d_pred - d_gt), pair_mask, axis=1))
-    return np.concatenate(out) if out else np.zeros(0)
+    One sample at a time with scipy's ``pdist`` (compiled pair distances): dense points
+    have N(N-1)/2 pairs per sample, and building them for blocks of samples with numpy
+    took ~25x longer at 2,017 points (all samples at once would not fit in memory)."""
+    out = np.zeros(len(pred))
+    keep_all = (mask > 0).all(1)
+    for s, every in enumerate(keep_all):
+        keep = slice(None) if every else mask[s] > 0
+        x, y = pred[s, keep], gt[s, keep]
+        if len(x) >= 2:
+            out[s] = np.abs(pdist(x) - pdist(y)).mean()
+    return out
 
 
 def _aggregate(per_sample: np.ndarray, data: KeypointData) -> tuple[float, dict]:

@@ -42,15 +42,16 @@ def test_mpjpe_flip_and_stress_match_brute_force():
     )
 
 
-def test_stress_in_blocks_of_samples_is_the_per_sample_brute_force():
-    # Dense points are scored a few samples at a time (bounded memory): any block size,
-    # down to one sample, gives each sample's brute-force stress.
+def test_stress_is_the_per_sample_brute_force_over_the_pairs_the_mask_keeps():
     rng = np.random.default_rng(3)
     gt, pred = rng.normal(size=(2, 7, 9, 3))
-    every = np.ones((7, 9))
-    expected = [_loop_stress(p, g) for p, g in zip(pred, gt)]
-    for max_elements in (1, 50, 10**9):
-        np.testing.assert_allclose(evaluation.stress(pred, gt, every, max_elements), expected)
+    mask = (rng.uniform(size=(7, 9)) > 0.3).astype(float)
+    mask[0] = 1.0  # every point
+    mask[1, 1:] = 0.0  # one point: no pair, stress 0
+    expected = [_loop_stress(p[m > 0], g[m > 0]) if m.sum() >= 2 else 0.0
+                for p, g, m in zip(pred, gt, mask)]
+    np.testing.assert_allclose(evaluation.stress(pred, gt, mask), expected, rtol=1e-12)
+    assert evaluation.stress(pred, gt, mask)[1] == 0.0
 
 
 def test_known_answer_depth_offset_is_ignored_and_shift_is_not():
