@@ -2,7 +2,7 @@
 its accuracy on the joints (the paper trains on the 6,890 SMPL vertices of S-Up3D and scores
 a representative subset).
 
-Two parts, each a table in ``OUT/dense_points.md`` and a panel of ``OUT/dense_points.png``::
+Two parts, each a table in ``--dense_out``/dense_points.md and panels of its dense_points.png::
 
   python experiments/dense_points/run.py --part=cost       # alone on the machine
   python experiments/dense_points/run.py --part=accuracy   # trains, then scores
