@@ -69,7 +69,7 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     return jnp.mean(canon)
 
 
-_NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
+NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
 
 
 def ramp_problem(ramp, final) -> str | None:
@@ -108,9 +108,9 @@ class LossConfig:
     squared_reprojection_loss: bool = False
 
     def __post_init__(self):
-        if self.reprojection_normalization not in _NORMALIZATIONS:
+        if self.reprojection_normalization not in NORMALIZATIONS:
             raise ValueError(f"unknown reprojection_normalization "
-                             f"{self.reprojection_normalization!r}; known: {_NORMALIZATIONS}")
+                             f"{self.reprojection_normalization!r}; known: {NORMALIZATIONS}")
         problem = ramp_problem(self.canonicalization_ramp, self.w_canonicalization_final)
         if problem:
             raise ValueError(problem)

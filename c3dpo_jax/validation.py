@@ -115,7 +115,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.z_equivariance_rot_angle": ANGLE,
     "model.canonicalization_rot_angle": ANGLE,
     "loss.huber_scaling": POSITIVE,
-    "loss.reprojection_normalization": OneOf(("kp_total_count", "kp_count_per_image")),
+    "loss.reprojection_normalization": OneOf(losses.NORMALIZATIONS),
     "model.weight_init_std": NON_NEGATIVE,
     "model.matmul_precision": OneOf(MATMUL_PRECISIONS),
     "loss.w_reprojection": NON_NEGATIVE,
