@@ -281,8 +281,9 @@ def forward_train(
       ``(terms, batch_stats)``: ``dist_sq`` (N,), the squared distance of each
       reprojected point to the normalised input (unmasked), and ``canon_dist_sq``
       (S, N), the squared distance of each point of Psi's reconstruction of each randomly
-      rotated canonical shape to that shape (S = 0 without Psi); the updated BatchNorm
-      statistics. ``losses`` penalises and reduces them.
+      rotated canonical shape to that shape (S = 0 without Psi), ``deform_sq`` (N,), the
+      squared distance of each point of the canonical shape to the mean shape (its
+      deformation); the updated BatchNorm statistics. ``losses`` penalises and reduces them.
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
@@ -318,7 +319,9 @@ def forward_train(
     r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
     x_cam = (x_cam + t[None]) @ r_aug3  # applies R_aug^T to column vectors
     _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
-    terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints))}
+    mean_shape = _shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
+    terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
+             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1)}
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
             net, params, stats, x_canon, class_mask, rotations.canonicalisation

@@ -120,6 +120,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.matmul_precision": OneOf(MATMUL_PRECISIONS),
     "loss.w_reprojection": NON_NEGATIVE,
     "loss.w_canonicalization": NON_NEGATIVE,
+    "loss.w_deformation": NON_NEGATIVE,
     "optim.optimizer": OneOf(OPTIMIZERS),
     "optim.lr": POSITIVE,
     "optim.momentum": Range(lo=0, hi=1, hi_open=True),

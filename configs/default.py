@@ -59,11 +59,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.model = dataclasses.asdict(ModelConfig())
     # losses.LossConfig: the weights (canonicalization_ramp=(first, last) steps moves the
     # canonicalisation weight linearly to w_canonicalization_final; () keeps it constant)
-    # and the options of the terms (the release keeps them with the model).
+    # and the options of the terms (the release keeps them with the model); w_deformation
+    # (not in the paper: 0) weights a Gaussian prior on the deformations.
     c.loss = dict(
         w_reprojection=1.0, w_canonicalization=1.0,
         w_canonicalization_final=ml_collections.config_dict.placeholder(float),
-        canonicalization_ramp=(),
+        canonicalization_ramp=(), w_deformation=0.0,
         huber_scaling=0.01, reprojection_normalization="kp_total_count",
         squared_reprojection_loss=False,
     )

@@ -284,6 +284,42 @@ def test_canonicalisation_weight_ramp(setup):
         train.LossConfig(canonicalization_ramp=(1, 5))
 
 
+def test_deformation_prior_is_the_mean_squared_deformation(setup):
+    """The deformation term is 0 for a basis of zeros, grows as the square of the basis'
+    scale (Phi's coefficients do not depend on the basis), and enters the objective
+    linearly with its weight; the default weight 0 leaves the paper's objective."""
+    state, data, _, _ = setup
+    batch = jax.tree.map(lambda a: a[:16], data)
+
+    def terms(params, w):
+        loss_fn = train.make_loss_fn(CFG, train.LossConfig(w_deformation=w))
+        objective, (_, m) = loss_fn(params, state.batch_stats, batch, jax.random.key(3))
+        return float(objective), m
+
+    def scaled_basis(c):
+        params = jax.tree.map(lambda a: a, state.params)  # a copy of the tree
+        layer = dict(params["shape_layer"])
+        layer["kernel"] = layer["kernel"] * c
+        return {**params, "shape_layer": layer}
+
+    _, m1 = terms(state.params, 0.0)
+    _, m2 = terms(scaled_basis(2.0), 0.0)
+    _, m0 = terms(scaled_basis(0.0), 0.0)
+    d1 = float(m1["loss/deformation"])
+    assert d1 > 0
+    np.testing.assert_allclose(float(m2["loss/deformation"]), 4.0 * d1, rtol=1e-4)
+    assert float(m0["loss/deformation"]) == 0.0
+    base, _ = terms(state.params, 0.0)
+    np.testing.assert_allclose(base, float(m1["loss/reprojection"])
+                               + float(m1["loss/canonicalisation"]), rtol=1e-6)
+    w = 1e5  # the initial basis is small: a weight that makes the term matter
+    weighted, mw = terms(state.params, w)
+    assert weighted > base + 0.1
+    np.testing.assert_allclose(weighted, float(mw["loss/reprojection"]) + float(
+        mw["loss/canonicalisation"]) + w * float(mw["loss/deformation"]), rtol=1e-6)
+    np.testing.assert_allclose(float(mw["loss/deformation"]), d1, rtol=1e-6)
+
+
 def test_cosine_schedule_matches_its_formula():
     cfg = OptimConfig(optimizer="adam", lr=3e-3, schedule="cosine", cosine_steps=1000)
     sched = make_schedule(cfg, steps_per_epoch=100)
