@@ -79,18 +79,32 @@ def deformation(deform_sq: Float[Array, "B N"], class_mask: Float[Array, "B N"]
 NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
 
 
-def ramp_problem(ramp, final) -> str | None:
-    """What is wrong with a canonicalisation ramp and its final weight (None: nothing),
-    one line; ``LossConfig`` raises it and ``validation`` lists it."""
+def ramp_problem(ramp, final, term: str = "canonicalization") -> str | None:
+    """What is wrong with the ramp of a loss weight (``term``: ``canonicalization`` or
+    ``deformation``) and its final weight (None: nothing), one line; ``LossConfig`` raises
+    it and ``validation`` lists it."""
     if not ramp:
         return None
     if (len(ramp) != 2 or any(not isinstance(r, int) or isinstance(r, bool) or r < 0
                               for r in ramp)
             or ramp[0] > ramp[1] or not isinstance(final, (int, float)) or not final >= 0):
-        return (f"config.loss.canonicalization_ramp={tuple(ramp)} with "
-                f"config.loss.w_canonicalization_final={final} (the ramp is (first_step, "
+        return (f"config.loss.{term}_ramp={tuple(ramp)} with "
+                f"config.loss.w_{term}_final={final} (the ramp is (first_step, "
                 "last_step), 0 <= first <= last, and the final weight a number >= 0)")
     return None
+
+
+def _ramped(first_weight, final_weight, ramp, step):
+    """The weight at ``step`` (a scalar, traced or not) of a linear ramp from
+    ``first_weight`` at step ``ramp[0]`` to ``final_weight`` at ``ramp[1]``; constant
+    without a ramp."""
+    if not ramp:
+        return first_weight
+    first, last = ramp
+    step = jnp.asarray(step, jnp.float32)
+    frac = jnp.clip((step - first) / (last - first), 0.0, 1.0) if last > first else (
+        (step >= first).astype(jnp.float32))
+    return first_weight + frac * (final_weight - first_weight)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,13 +124,16 @@ class LossConfig:
     (see ``reprojection``). ``canonicalization_ramp=(first, last)`` (steps) moves the
     canonicalisation weight linearly from ``w_canonicalization`` at step ``first`` to
     ``w_canonicalization_final`` at step ``last`` (``first == last``: a jump); empty: the
-    weight is constant."""
+    weight is constant. ``deformation_ramp`` and ``w_deformation_final`` do the same for
+    the deformation prior's weight."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0
     w_canonicalization_final: float | None = None
     canonicalization_ramp: tuple[int, ...] = ()
     w_deformation: float = 0.0
+    w_deformation_final: float | None = None
+    deformation_ramp: tuple[int, ...] = ()
     huber_scaling: float = 0.01
     reprojection_normalization: str = "kp_total_count"
     squared_reprojection_loss: bool = False
@@ -125,11 +142,12 @@ class LossConfig:
         if self.reprojection_normalization not in NORMALIZATIONS:
             raise ValueError(f"unknown reprojection_normalization "
                              f"{self.reprojection_normalization!r}; known: {NORMALIZATIONS}")
-        problem = ramp_problem(self.canonicalization_ramp, self.w_canonicalization_final)
-        if problem:
-            raise ValueError(problem)
-        object.__setattr__(self, "canonicalization_ramp",
-                           tuple(int(s) for s in self.canonicalization_ramp))
+        for term in ("canonicalization", "deformation"):
+            ramp = getattr(self, f"{term}_ramp")
+            problem = ramp_problem(ramp, getattr(self, f"w_{term}_final"), term)
+            if problem:
+                raise ValueError(problem)
+            object.__setattr__(self, f"{term}_ramp", tuple(int(s) for s in ramp))
 
     def penalty(self, dist_sq):
         """The reprojection term of each point from its squared distance (eq. 4)."""
@@ -137,14 +155,13 @@ class LossConfig:
 
     def canonicalization_weight(self, step):
         """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
-        if not self.canonicalization_ramp:
-            return self.w_canonicalization
-        first, last = self.canonicalization_ramp
-        step = jnp.asarray(step, jnp.float32)
-        frac = jnp.clip((step - first) / (last - first), 0.0, 1.0) if last > first else (
-            (step >= first).astype(jnp.float32))
-        return self.w_canonicalization + frac * (
-            self.w_canonicalization_final - self.w_canonicalization)
+        return _ramped(self.w_canonicalization, self.w_canonicalization_final,
+                       self.canonicalization_ramp, step)
+
+    def deformation_weight(self, step):
+        """The deformation prior's weight at ``step`` (a scalar, traced or not)."""
+        return _ramped(self.w_deformation, self.w_deformation_final, self.deformation_ramp,
+                       step)
 
 
 def draw_rotations(key: jax.Array, cfg: model.ModelConfig) -> model.TrainRotations:
@@ -189,7 +206,7 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
         l_deform = deformation(terms["deform_sq"], batch["class_mask"])
         w_canon = loss_cfg.canonicalization_weight(step)
         objective = (loss_cfg.w_reprojection * l_repro + w_canon * l_canon
-                     + loss_cfg.w_deformation * l_deform)
+                     + loss_cfg.deformation_weight(step) * l_deform)
         metrics = {
             "loss": objective,
             "loss/reprojection": l_repro,

@@ -179,9 +179,11 @@ def _cross_field(cfg: dict) -> list[str]:
         cosine_steps = get("optim.cosine_steps")
         problems.append(state.schedule_problem(schedule,
                                                0 if cosine_steps is _MISSING else cosine_steps))
-    ramp, final = get("loss.canonicalization_ramp"), get("loss.w_canonicalization_final")
-    if ramp is not _MISSING:
-        problems.append(losses.ramp_problem(ramp, None if final is _MISSING else final))
+    for term in ("canonicalization", "deformation"):
+        ramp, final = get(f"loss.{term}_ramp"), get(f"loss.w_{term}_final")
+        if ramp is not _MISSING:
+            problems.append(losses.ramp_problem(ramp, None if final is _MISSING else final,
+                                                term))
     problems = [p for p in problems if p]
     if get("train.num_steps") == 0 and get("train.epochs") == 0:
         problems.append(

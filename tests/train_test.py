@@ -318,6 +318,12 @@ def test_deformation_prior_is_the_mean_squared_deformation(setup):
     np.testing.assert_allclose(weighted, float(mw["loss/reprojection"]) + float(
         mw["loss/canonicalisation"]) + w * float(mw["loss/deformation"]), rtol=1e-6)
     np.testing.assert_allclose(float(mw["loss/deformation"]), d1, rtol=1e-6)
+    decay = train.LossConfig(w_deformation=1.0, w_deformation_final=0.0,
+                             deformation_ramp=(3000, 5000))
+    np.testing.assert_allclose([float(decay.deformation_weight(s)) for s in (0, 3000, 4500, 6000)],
+                               [1.0, 1.0, 0.25, 0.0])
+    with pytest.raises(ValueError, match="w_deformation_final"):
+        train.LossConfig(deformation_ramp=(1, 5))
 
 
 def test_cosine_schedule_matches_its_formula():

@@ -203,3 +203,10 @@ def test_schedule_and_ramp_rules():
     c.optim.schedule = "linear"
     assert validation.config_problems(c) == [
         "config.optim.schedule='linear' (must be one of 'multistep', 'cosine')"]
+    c.optim.schedule = "cosine"
+    c.loss.deformation_ramp = (3000, 5000)  # no final weight
+    problems = validation.config_problems(c)
+    assert len(problems) == 1 and problems[0].startswith(
+        "config.loss.deformation_ramp=(3000, 5000) with config.loss.w_deformation_final=None")
+    c.loss.w_deformation_final = 0.0
+    assert validation.config_problems(c) == []
