@@ -54,8 +54,10 @@ def _write_figures(config, workdir):
     try:
         from c3dpo_jax import visualise
         from c3dpo_jax.data import load_splits
+        from c3dpo_jax.reconstruct import load, reconstruct_data
 
-        visualise.write_run_figures(workdir, load_splits(config.data)[1])
+        test = load_splits(config.data)[1]
+        visualise.write_run_figures(workdir, test, reconstruct_data(load(workdir), test, 3))
     except Exception as err:  # noqa: BLE001 (pictures are optional)
         logging.warning("could not write figures to %s/figures: %r", workdir, err)
 

@@ -124,14 +124,9 @@ def picture_style(workdir: str, inputs: dict, skeleton=None, y_up: bool | None =
 def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool, unit: str) -> None:
     from c3dpo_jax import visualise
 
-    os.makedirs(out_dir, exist_ok=True)
-    for i in range(min(n, len(rec.shape_3d))):
-        gt = inputs["kp3d"][i] if "kp3d" in inputs else None
-        fig = visualise.plot_reconstruction_3d(
-            rec.shape_3d[i], gt, edges, kp=inputs["kp"][i], vis=inputs["vis"][i],
-            title=f"sample {inputs['index'][i]}", y_up=y_up, unit=unit,
-            kp_reprojected=rec.kp_reprojected[i])
-        visualise.save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png"))
+    visualise.write_reconstruction_figures(
+        rec, inputs["kp"], inputs["vis"], out_dir, gt=inputs.get("kp3d"), n=n, edges=edges,
+        y_up=y_up, unit=unit, titles=[f"sample {i}" for i in inputs["index"]])
 
 
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,

@@ -261,3 +261,14 @@ def reconstruct(
     if bad.size:  # a safety net: the checks above should leave nothing to catch here
         raise ValueError(f"the reconstruction of {_samples(bad)} is not finite")
     return Reconstruction(*(a[0] if single else a for a in out))
+
+
+def reconstruct_data(params: C3DPOParams, data, n: int | None = None) -> Reconstruction:
+    """``reconstruct`` of the first ``n`` samples (all: None) of a ``KeypointData``, with its
+    class masks and, for a perspective model, its intrinsics."""
+    n = len(data) if n is None else min(n, len(data))
+    inputs = data.model_inputs()
+    perspective = params.config.projection_type == "perspective"
+    return reconstruct(params, data.kp[:n], data.vis[:n],
+                       K=data.intrinsics[:n] if perspective else None,
+                       class_mask=inputs["class_mask"][:n])

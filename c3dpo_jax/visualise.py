@@ -251,15 +251,44 @@ def run_style(config: dict) -> dict:
     return {**STYLE_DEFAULTS, **_DATASET_STYLES.get(name or "", {})}
 
 
-def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None,
-                      y_up: bool | None = None, out_dir: str | None = None) -> list[str]:
-    """Training curves and reconstructions of the first ``n_samples`` of ``data``.
+def write_reconstruction_figures(rec, kp, vis, out_dir: str, *, gt=None, n: int = 3,
+                                 edges=(), y_up: bool = False, unit: str = "",
+                                 titles=None, gif: bool = False) -> list[str]:
+    """``reconstruction_I.png`` for the first ``n`` samples of a reconstruction ``rec``
+    (``reconstruct.Reconstruction``) of the 2D inputs ``kp``, ``vis`` (and ``gt``, their
+    3D ground truth, or None), and with ``gif`` a rotating GIF of the first; returns the
+    paths written. ``titles`` (one per sample) default to "sample I"."""
+    os.makedirs(out_dir, exist_ok=True)
+    n = min(n, len(rec.shape_3d), len(kp))
+    paths = []
+    for i in range(n):
+        fig = plot_reconstruction_3d(rec.shape_3d[i], None if gt is None else gt[i], edges,
+                                     kp=kp[i], vis=vis[i],
+                                     title=titles[i] if titles is not None else f"sample {i}",
+                                     y_up=y_up, unit=unit, kp_reprojected=rec.kp_reprojected[i])
+        paths.append(save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
+    if gif and n:
+        paths.append(save_rotation_gif(rec.shape_3d[0], os.path.join(out_dir, "rotation_0.gif"),
+                                       edges, gt=None if gt is None else gt[0], vis=vis[0],
+                                       y_up=y_up))
+    return paths
+
+
+def write_run_figures(workdir: str, data=None, reconstruction=None, n_samples: int = 3,
+                      skeleton=None, y_up: bool | None = None,
+                      out_dir: str | None = None) -> list[str]:
+    """A trained run's pictures: its training curves and, given ``data`` and its
+    ``reconstruction``, the reconstructions of the first ``n_samples`` and a rotating GIF
+    of the first. This module draws; it does not load models::
+
+        params = reconstruct.load(workdir)
+        visualise.write_run_figures(workdir, test, reconstruct.reconstruct_data(params, test, 3))
 
     Args:
-      workdir: a trained workdir (config.json, checkpoints, metrics.jsonl,
-        eval_results.json).
+      workdir: a trained workdir (config.json, metrics.jsonl, eval_results.json).
       data: a ``KeypointData`` (e.g. the test split); ground truth is drawn if it has any.
-      n_samples: how many samples to draw (plus one rotating GIF of the first).
+      reconstruction: a ``reconstruct.Reconstruction`` of the first samples of ``data``.
+      n_samples: how many samples to draw (at most as many as were reconstructed).
       skeleton: a name in ``SKELETONS``, ``"0-1,1-2"`` or index pairs (default:
         ``run_style`` of the workdir's config).
       y_up: whether the data's y axis points up (default: ``run_style``).
@@ -268,9 +297,10 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None
     Returns:
       The paths written.
     """
-    from c3dpo_jax import checkpoint
-    from c3dpo_jax.reconstruct import load, reconstruct
-
+    if (data is None) != (reconstruction is None):
+        raise ValueError("write_run_figures draws data with its reconstruction: pass both "
+                         "(reconstruction=reconstruct.reconstruct_data(params, data, n)) or "
+                         "neither")
     out_dir = out_dir or os.path.join(workdir, "figures")
     os.makedirs(out_dir, exist_ok=True)
     paths = []
@@ -279,24 +309,17 @@ def write_run_figures(workdir: str, data=None, n_samples: int = 3, skeleton=None
         paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
     if data is None:
         return paths
-    style = run_style(checkpoint.load_config(workdir) or {})
+    config_path = os.path.join(workdir, "config.json")  # the run's config; no model is loaded
+    config = {}
+    if os.path.exists(config_path):
+        with open(config_path) as f:
+            config = json.load(f)
+    style = run_style(config)
     spec = style.get("skeleton") if skeleton is None else skeleton
     edges = skeletons.skeleton(spec, data.n_keypoints)
     y_up = bool(style.get("y_up", False)) if y_up is None else y_up
-    params = load(workdir)
-    n = min(n_samples, len(data))
-    inputs = data.model_inputs()
-    perspective = params.config.projection_type == "perspective"
-    rec = reconstruct(params, data.kp[:n], data.vis[:n], class_mask=inputs["class_mask"][:n],
-                      K=data.intrinsics[:n] if perspective else None)
-    for i in range(n):
-        gt = None if data.kp3d is None else data.kp3d[i]
-        fig = plot_reconstruction_3d(rec.shape_3d[i], gt, edges, kp=data.kp[i], vis=data.vis[i],
-                                     title=f"sample {i}", y_up=y_up, unit=style["unit"],
-                                     kp_reprojected=rec.kp_reprojected[i])
-        paths.append(save_figure(fig, os.path.join(out_dir, f"reconstruction_{i}.png")))
-    gt = None if data.kp3d is None else data.kp3d[0]
-    paths.append(save_rotation_gif(rec.shape_3d[0], os.path.join(out_dir, "rotation_0.gif"),
-                                   edges, gt=gt, vis=data.vis[0], y_up=y_up))
+    paths += write_reconstruction_figures(reconstruction, data.kp, data.vis, out_dir,
+                                          gt=data.kp3d, n=n_samples, edges=edges, y_up=y_up,
+                                          unit=style["unit"], gif=True)
     logging.info("wrote %d figures to %s", len(paths), out_dir)
     return paths

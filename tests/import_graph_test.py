@@ -57,11 +57,22 @@ def test_no_module_imports_another_in_a_circle():
     assert _cycles(_graph(top_level_only=False)) == []
 
 
-def test_inference_does_not_import_the_training_code():
-    graph, seen, todo = _graph(top_level_only=True), set(), ["c3dpo_jax.reconstruct"]
+def _reached(start: str, top_level_only: bool) -> set[str]:
+    graph, seen, todo = _graph(top_level_only), set(), [start]
     while todo:
         node = todo.pop()
         if node not in seen:
             seen.add(node)
             todo.extend(graph[node])
+    return seen
+
+
+def test_inference_does_not_import_the_training_code():
+    seen = _reached("c3dpo_jax.reconstruct", top_level_only=True)
     assert not seen & {"c3dpo_jax.train", "c3dpo_jax.state"}, sorted(seen)
+
+
+def test_the_pictures_draw_and_never_load_a_model():
+    seen = _reached("c3dpo_jax.visualise", top_level_only=False)
+    assert not seen & {"c3dpo_jax.model", "c3dpo_jax.checkpoint", "c3dpo_jax.reconstruct",
+                       "c3dpo_jax.inference"}, sorted(seen)

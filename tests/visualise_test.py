@@ -12,7 +12,7 @@ from absl import logging
 
 from c3dpo_jax import curves, model, skeletons, visualise
 from c3dpo_jax.data import synthetic
-from c3dpo_jax.reconstruct import C3DPOParams, save_workdir
+from c3dpo_jax.reconstruct import C3DPOParams, load, reconstruct_data, save_workdir
 
 CFG = model.ModelConfig(n_keypoints=17, shape_basis_size=3, n_fully_connected=16, n_layers=1,
                         canonicalization_n_fully_connected=16, canonicalization_n_layers=1)
@@ -155,7 +155,9 @@ def test_write_run_figures_writes_curves_reconstructions_and_a_gif(run, tmp_path
     from PIL import Image
 
     workdir, data = run
-    paths = visualise.write_run_figures(workdir, data, n_samples=2, out_dir=str(tmp_path))
+    rec = reconstruct_data(load(workdir), data, 2)
+    assert rec.shape_3d.shape == (2, 17, 3)
+    paths = visualise.write_run_figures(workdir, data, rec, n_samples=3, out_dir=str(tmp_path))
     names = sorted(os.path.basename(p) for p in paths)
     assert names == ["reconstruction_0.png", "reconstruction_1.png", "rotation_0.gif",
                      "training_curves.png"]
@@ -173,7 +175,9 @@ def test_write_run_figures_writes_curves_reconstructions_and_a_gif(run, tmp_path
     grey = ((np.ptp(img, -1) < 0.05) & (img.mean(-1) > 0.5) & (img.mean(-1) < 0.9)).sum()
     assert blue > 200 and grey > 200
     with pytest.raises(ValueError, match="unknown skeleton"):
-        visualise.write_run_figures(workdir, data, skeleton="hand", out_dir=str(tmp_path))
+        visualise.write_run_figures(workdir, data, rec, skeleton="hand", out_dir=str(tmp_path))
+    with pytest.raises(ValueError, match="pass both"):
+        visualise.write_run_figures(workdir, data, out_dir=str(tmp_path))
 
 
 def test_a_plotting_failure_only_logs_a_warning(tmp_path, monkeypatch):

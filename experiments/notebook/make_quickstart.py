@@ -28,7 +28,7 @@ CELLS = [
         "import numpy as np\n"
         "from IPython.display import Image, display\n"
         "\n"
-        "from c3dpo_jax import evaluation, load, reconstruct, train, visualise\n"
+        "from c3dpo_jax import evaluation, load, reconstruct, reconstruct_data, train, visualise\n"
         "from c3dpo_jax.cli import get_config\n"
         "from c3dpo_jax.data import load_splits, synthetic"
     ),
@@ -68,7 +68,8 @@ CELLS = [
         "points hidden in the input are hollow. `tensorboard --logdir` on the workdir shows "
         "the same curves."),
     new_code_cell(
-        "paths = visualise.write_run_figures(workdir, load_splits(config.data)[1], n_samples=2)\n"
+        "test = load_splits(config.data)[1]\n"
+        "paths = visualise.write_run_figures(workdir, test, reconstruct_data(params, test, 2))\n"
         "for p in paths:\n"
         "    if p.endswith('.png'):\n"
         "        display(Image(filename=p))"
