@@ -163,11 +163,19 @@ class RunSpec:
         t = config.train
         steps_per_epoch = max(t.samples_per_epoch // t.batch_size, 1)
         eval_every = t.get("eval_every_steps", 0) or t.eval_every_epochs * steps_per_epoch
-        return cls(model=model.ModelConfig.from_dict(config.model),
+        spec = cls(model=model.ModelConfig.from_dict(config.model),
                    optim=OptimConfig.from_dict(config.optim), loss=LossConfig(**config.loss),
                    batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
                    total_steps=t.num_steps or t.epochs * steps_per_epoch,
                    eval_every=eval_every)
+        for term in ("canonicalization", "deformation"):
+            ramp = getattr(spec.loss, f"{term}_ramp")
+            if ramp and ramp[1] > spec.total_steps:
+                logging.warning(
+                    "config.loss.%s_ramp=%s ends after the run's %d steps: the weight never "
+                    "reaches config.loss.w_%s_final (set a ramp inside the run)", term,
+                    ramp, spec.total_steps, term)
+        return spec
 
     def optimizer(self) -> optax.GradientTransformation:
         return make_optimizer(self.optim, self.steps_per_epoch)

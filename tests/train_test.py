@@ -326,6 +326,22 @@ def test_deformation_prior_is_the_mean_squared_deformation(setup):
         train.LossConfig(deformation_ramp=(1, 5))
 
 
+def test_a_ramp_that_ends_after_the_run_is_warned_about(monkeypatch):
+    from absl import logging
+
+    messages = []
+    monkeypatch.setattr(logging, "warning", lambda msg, *args: messages.append(msg % args))
+    c = default.get_config()
+    c.train.num_steps = 20
+    c.loss.deformation_ramp, c.loss.w_deformation_final = (3000, 5000), 0.0
+    train.RunSpec.from_config(c)
+    assert len(messages) == 1 and messages[0].startswith(
+        "config.loss.deformation_ramp=(3000, 5000) ends after the run's 20 steps")
+    c.loss.deformation_ramp = (5, 10)
+    train.RunSpec.from_config(c)
+    assert len(messages) == 1
+
+
 def test_cosine_schedule_matches_its_formula():
     cfg = OptimConfig(optimizer="adam", lr=3e-3, schedule="cosine", cosine_steps=1000)
     sched = make_schedule(cfg, steps_per_epoch=100)
