@@ -205,8 +205,10 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             terms["canon_dist_sq"], batch["class_mask"], loss_cfg.huber_scaling))
         l_deform = deformation(terms["deform_sq"], batch["class_mask"])
         w_canon = loss_cfg.canonicalization_weight(step)
-        objective = (loss_cfg.w_reprojection * l_repro + w_canon * l_canon
-                     + loss_cfg.deformation_weight(step) * l_deform)
+        objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
+        if loss_cfg.w_deformation or loss_cfg.w_deformation_final:
+            # Only with the prior on: without it the objective is the paper's, op for op.
+            objective = objective + loss_cfg.deformation_weight(step) * l_deform
         metrics = {
             "loss": objective,
             "loss/reprojection": l_repro,
