@@ -267,8 +267,7 @@ def reconstruct_data(params: C3DPOParams, data, n: int | None = None) -> Reconst
     """``reconstruct`` of the first ``n`` samples (all: None) of a ``KeypointData``, with its
     class masks and, for a perspective model, its intrinsics."""
     n = len(data) if n is None else min(n, len(data))
-    inputs = data.model_inputs()
     perspective = params.config.projection_type == "perspective"
     return reconstruct(params, data.kp[:n], data.vis[:n],
                        K=data.intrinsics[:n] if perspective else None,
-                       class_mask=inputs["class_mask"][:n])
+                       class_mask=None if data.class_mask is None else data.class_mask[:n])
