@@ -2,7 +2,8 @@
 
 Run: ``python -m c3dpo_jax.main --config=configs/default.py --workdir=/tmp/c3dpo``.
 ``--config=FILE:ARGS`` takes comma-separated variant words:
-  smoke  tiny networks (H=32, 2 layers), 20 steps: checks that everything runs;
+  smoke  tiny networks (H=32, 2 layers), 20 steps (loss-weight ramps shrunk with the run):
+         checks that everything runs;
   base   C3DPO-base (reprojection loss only: no equivariance, no Psi);
   equiv  C3DPO-equiv (+ in-plane equivariance, no Psi);
   full   C3DPO (the default: + canonicalisation network Psi).
@@ -132,6 +133,8 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         c.model.z_equivariance = True
         c.model.canonicalization = False
     if "smoke" in words:
+        recipe_steps = c.train.num_steps or (
+            c.train.epochs * c.train.samples_per_epoch // c.train.batch_size)
         c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 32
         c.model.n_layers = c.model.canonicalization_n_layers = 2
         c.train.batch_size = 32
@@ -145,4 +148,7 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         c.data.humans.n_train_poses, c.data.humans.n_test_poses = 16, 4
         c.data.humans.views_per_pose = 16
         c.data.categories.n_train, c.data.categories.n_test = 256, 64
+        for term in ("canonicalization", "deformation"):  # loss-weight ramps: same fractions
+            ramp = c.loss[f"{term}_ramp"]
+            c.loss[f"{term}_ramp"] = tuple(s * c.train.num_steps // recipe_steps for s in ramp)
     return c

@@ -12,7 +12,7 @@ import pytest
 from c3dpo_jax import device_data, model, run_records, train
 from c3dpo_jax.data import KeypointData, synthetic
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
-from configs import default
+from configs import default, own_json
 
 CFG = model.ModelConfig(
     n_keypoints=8, shape_basis_size=3, n_fully_connected=32, n_layers=1,
@@ -339,6 +339,13 @@ def test_a_ramp_that_ends_after_the_run_is_warned_about(monkeypatch):
         "config.loss.deformation_ramp=(3000, 5000) ends after the run's 20 steps")
     c.loss.deformation_ramp = (5, 10)
     train.RunSpec.from_config(c)
+    assert len(messages) == 1
+    # The :smoke variant shrinks a config's ramps with its run: own_json's prior ramps
+    # over 30-50% of its 10,000 steps, so over steps 6-10 of the smoke run's 20, unwarned.
+    smoke = own_json.get_config("smoke")
+    assert own_json.get_config().loss.deformation_ramp == (3000, 5000)
+    assert smoke.loss.deformation_ramp == (6, 10) and smoke.train.num_steps == 20
+    train.RunSpec.from_config(smoke)
     assert len(messages) == 1
 
 

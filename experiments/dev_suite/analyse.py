@@ -1,7 +1,7 @@
 """What bounds the suite's errors: references computed from the 3D truth, and errors per clip.
 
   python experiments/dev_suite/analyse.py floors               # every dataset with views
-  python experiments/dev_suite/analyse.py clips --run=results/runs/default/deepmimic__s0
+  python experiments/dev_suite/analyse.py clips --run=results/runs/nodeform/deepmimic__s0
 
 ``floors``: for each dataset whose views ``suite.py`` has made, on the test views, with the
 3D truth C3DPO never sees: the training split's Procrustes mean shape under the oracle
