@@ -21,8 +21,9 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
 ``OUT/runs/VARIANT/DATASET__sSEED`` (a finished run is not run again; an unfinished one
-resumes), ``--jobs`` of them at a time, each pinned to one core. The table (markdown, also
-written to ``OUT/VARIANT.md``) gives per dataset the mean (and spread) over seeds of: the rigid
+resumes), ``--jobs`` of them at a time, each pinned to one core. The table of the datasets
+and seeds asked for is printed; ``OUT/VARIANT.md`` gets the table of every finished run of the
+variant. It gives per dataset the mean (and spread) over seeds of: the rigid
 baseline (the training mean shape, best rigid fit to each view) and zero depth; C3DPO after
 2, 5 and 10 minutes of training (each run's own clock: one core, other runs on the other) and
 at the end, also without the protocol's per-view depth flip (close to the flipped value when
@@ -242,6 +243,16 @@ def table(out: str, variant: str, datasets, seeds) -> str:
     return "\n".join(lines)
 
 
+def finished(out: str, variant: str) -> tuple[list[str], list[str]]:
+    """The datasets (the suite's order, then others by name) and seeds of the variant's
+    finished runs."""
+    names = [os.path.basename(w).rpartition("__s")
+             for w in glob.glob(os.path.join(out, "runs", variant, "*__s*")) if is_finished(w)]
+    found = {d for d, _, _ in names}
+    datasets = [d for d in DATASETS if d in found] + sorted(found - set(DATASETS))
+    return datasets, sorted({s for _, _, s in names}, key=int)
+
+
 def main(argv):
     del argv
     variants = [parse_variant(v) for v in FLAGS.variant] or [("default", [])]
@@ -257,11 +268,12 @@ def main(argv):
                         jobs.append((workdir, command(data[d], overrides, seed, workdir)))
         run_all(jobs, FLAGS.jobs, FLAGS.out)
     for name, overrides in variants:
-        text = table(FLAGS.out, name, FLAGS.datasets, FLAGS.seeds)
         header = f"### {name}" + (f" ({', '.join(overrides)})" if overrides else "")
+        # The file holds every finished run of the variant, not only those asked for now,
+        # so that a run on a few datasets or seeds does not shrink the variant's table.
         with open(os.path.join(FLAGS.out, f"{name}.md"), "w") as f:
-            f.write(header + "\n\n" + text + "\n")
-        print(f"\n{header}\n\n{text}")
+            f.write(header + "\n\n" + table(FLAGS.out, name, *finished(FLAGS.out, name)) + "\n")
+        print(f"\n{header}\n\n{table(FLAGS.out, name, FLAGS.datasets, FLAGS.seeds)}")
     missing = [w for w in glob.glob(os.path.join(FLAGS.out, "runs", "*", "*"))
                if not is_finished(w)]
     if missing:
