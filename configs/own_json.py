@@ -9,8 +9,8 @@ Set ``n_keypoints`` to your K (training stops with a message naming K if it diff
 ``--config.model.shape_basis_size`` (D, default 10: fewer for nearly rigid objects, more
 for dense or very deformable ones) and ``--config.data.protocol=none`` for 2D-only
 data. CPU-sized defaults, as configs/synthetic.py, with one addition that is not in the
-paper: a Gaussian prior on the deformations (weight 1) for the first 3,000 steps, ramped to
-0 at step 5,000. Two mirror-image reconstructions fit a view's 2D points equally; the prior
+paper: a Gaussian prior on the deformations (weight 1) for the first 1,000 steps, ramped to
+0 at step 2,000. Two mirror-image reconstructions fit a view's 2D points equally; the prior
 makes every view take one of them early on, after which the paper's objective trains alone
 (experiments/dev_suite, sixth screen: on real human motion it stops the error from rising
 as training goes on). ``--config.loss.w_deformation=0`` trains the paper's objective.
@@ -25,5 +25,5 @@ def get_config(arg=None):
     c.data.source = "json"  # train_path/test_path must be given
     default.cpu_recipe(c)
     c.loss.w_deformation, c.loss.w_deformation_final = 1.0, 0.0
-    c.loss.deformation_ramp = (3000, 5000)
+    c.loss.deformation_ramp = (1000, 2000)
     return default.apply_variants(c, arg)
