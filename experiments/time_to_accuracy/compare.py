@@ -1,9 +1,8 @@
 """Settings compared seed by seed: test MPJPE of each seed at one budget, per dataset.
 
   python experiments/time_to_accuracy/compare.py \\
-      "0.1=results/*__cpu__s*.json" \\
-      "0.2=results/search/*__cpu_eq02__s*.json" \\
-      "0.3925=results/search/*__cpu_eq03925__s*.json" [--at=600] [--figure=PATH] [--xlabel=..]
+      "0.1=results/[!h]*__cpu__s*.json" \\
+      "0.3925=results/eq_range/*__cpu_eq03925__s*.json" [--at=600] [--figure=PATH] [--xlabel=..]
 
 Each argument is ``LABEL=GLOB`` (relative paths from this folder): run.py results of one
 setting. Prints a markdown table (per setting: the seeds' MPJPE at ``--at`` seconds in
@@ -20,7 +19,7 @@ import json
 import os
 
 import numpy as np
-from report import HERE, mpjpe_at
+from report import HERE, mpjpe_at, panels, save_panels
 
 
 def load_settings(specs: list[str], at: float) -> tuple[list[str], dict, dict]:
@@ -71,9 +70,7 @@ def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float,
     import matplotlib.pyplot as plt
 
     datasets = sorted(fitted)
-    cols = min(4, len(datasets))
-    rows = -(-len(datasets) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.8 * rows), squeeze=False)
+    fig, axes = panels(plt, len(datasets), (3.2, 2.8))
     x = np.arange(len(labels))
     for ax, d in zip(axes.flat, datasets):
         means = []
@@ -87,12 +84,7 @@ def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float,
         ax.set_title(d)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(f"test MPJPE at {at / 60:g} min")
-    for ax in axes.flat[len(datasets):]:
-        ax.axis("off")
-    axes.flat[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_panels(plt, fig, axes, len(datasets), path)
 
 
 def main() -> None:

@@ -107,9 +107,7 @@ def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = No
     import matplotlib.pyplot as plt
 
     datasets = sorted({r["dataset"] for r in runs})
-    cols = min(4, len(datasets))
-    rows = -(-len(datasets) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
+    fig, axes = panels(plt, len(datasets), (4, 3.2))
     colours = {}
     for ax, d in zip(axes.flat, datasets):
         labelled = set()  # one legend entry per recipe, however many seeds
@@ -130,7 +128,19 @@ def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = No
         ax.set_yscale("log")
         ax.set_xlabel("training wall time (min)")
         ax.set_ylabel("test MPJPE")
-    for ax in axes.flat[len(datasets):]:
+    save_panels(plt, fig, axes, len(datasets), path)
+
+
+def panels(plt, n: int, size: tuple[float, float]):
+    """A figure of ``n`` panels, at most 4 a row, each ``size`` inches."""
+    cols = min(4, n)
+    rows = -(-n // cols)
+    return plt.subplots(rows, cols, figsize=(size[0] * cols, size[1] * rows), squeeze=False)
+
+
+def save_panels(plt, fig, axes, n: int, path: str) -> None:
+    """Hides the unused panels, puts the legend on the first and writes ``path``."""
+    for ax in axes.flat[n:]:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()

@@ -4,9 +4,13 @@
 #
 #   bash experiments/time_to_accuracy/run_all.sh                # everything
 #   DATASETS="pickup humans" SEEDS="0 1" bash experiments/time_to_accuracy/run_all.sh
+#   TAG=_eq03925 SET="model.z_equivariance_rot_angle=0.3925" OUT_DIR=DIR RECIPES=cpu \
+#     bash experiments/time_to_accuracy/run_all.sh   # a setting: recipe name cpu_eq03925
 #
 # Calibration runs (60 s of training, alone) go to results/calibration/; replayed runs
-# to results/. Then: python experiments/time_to_accuracy/report.py
+# to OUT_DIR (results/), the recipe's name followed by TAG, with the config overrides of
+# SET (space-separated KEY=VALUE) on every replayed run. Then: python
+# experiments/time_to_accuracy/report.py
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PY:-.venv/bin/python}
@@ -15,6 +19,10 @@ DATASETS=${DATASETS:-"drink face jaws pickup stretch yoga humans"}
 RECIPES=${RECIPES:-"cpu official"}
 SEEDS=${SEEDS:-"0"}
 BUDGET=${BUDGET:-600}
+OUT=${OUT_DIR:-$HERE/results}
+TAG=${TAG:-}
+SET_ARGS=()
+for item in ${SET:-}; do SET_ARGS+=(--set "$item"); done
 CAL=$HERE/results/calibration
 mkdir -p "$CAL" "$HERE/logs"
 
@@ -72,7 +80,7 @@ serial_file=$(mktemp)
 for s in $SEEDS; do
   for r in $RECIPES; do
     for d in $DATASETS; do
-      [ -f "$HERE/results/${d}__${r}__s${s}.json" ] && continue
+      [ -f "$OUT/${d}__${r}${TAG}__s${s}.json" ] && continue
       read -r sps cs < <(rate "$CAL/${d}__${r}__s0.json")
       if [[ " $PARALLEL_RECIPES " == *" $r "* ]]; then
         echo "$d $r $s $sps $cs" >> "$jobs_file"
@@ -92,9 +100,10 @@ pop() {  # prints and removes the first job, atomically
 one() {  # one D R S SPS CS [taskset/XLA prefix...]
   local d=$1 r=$2 s=$3 sps=$4 cs=$5
   shift 5
+  local log=$HERE/logs/${d}_${r}${TAG}_s${s}.log
   "$@" "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --seed="$s" --budget_s="$BUDGET" \
-    --steps_per_s="$sps" --compile_s="$cs" < /dev/null > "$HERE/logs/${d}_${r}_s${s}.log" 2>&1 \
-    || echo "FAILED: $d $r $s (see $HERE/logs/${d}_${r}_s${s}.log)"
+    --steps_per_s="$sps" --compile_s="$cs" --out_dir="$OUT" --tag="$TAG" \
+    ${SET_ARGS[@]+"${SET_ARGS[@]}"} < /dev/null > "$log" 2>&1 || echo "FAILED: $d $r $s (see $log)"
 }
 
 worker() {  # worker CORE: runs jobs from the shared queue on that core
@@ -111,4 +120,4 @@ while read -r line; do
   one $line env
 done < "$serial_file"
 rm -f "$jobs_file" "$jobs_file.lock" "$serial_file"
-"$PY" $HERE/report.py
+if [ "$OUT" = "$HERE/results" ] && [ -z "$TAG" ]; then "$PY" $HERE/report.py; fi

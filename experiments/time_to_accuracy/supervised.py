@@ -9,7 +9,7 @@ C3DPO (observed x, y of visible points kept; test MPJPE with the C3DPO protocol)
 same views as run.py (same importer, same data seed), so its numbers sit beside the
 time-to-accuracy table: a weakly supervised method should not be expected to beat it.
 
-  python experiments/time_to_accuracy/supervised.py --dataset=face --steps=25240
+  python experiments/time_to_accuracy/supervised.py --dataset=face --steps=10000
 
 writes ``OUT_DIR/supervised/DATASET__sSEED.json`` (curve of test MPJPE against steps and
 wall time, the final value, the settings).
@@ -33,8 +33,8 @@ import run  # noqa: E402  (load_dataset and its flags: --dataset, --set, --data_
 from c3dpo_jax import baselines, evaluation, networks  # noqa: E402
 
 FLAGS = flags.FLAGS
-flags.DEFINE_integer("steps", 25_240, "training steps, rounded up to a multiple of 20 (default: "
-                     "the cpu recipe's 10 minutes at K = 40 on the calibration machine)")
+flags.DEFINE_integer("steps", 10_000, "training steps, rounded up to a multiple of 20 (default: "
+                     "the cpu recipe's, configs.default.cpu_recipe)")
 flags.DEFINE_integer("width", 256, "trunk width")
 flags.DEFINE_integer("blocks", 3, "residual blocks")
 flags.DEFINE_integer("batch_size", 256, "batch size")
