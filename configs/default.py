@@ -94,7 +94,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
 def cpu_recipe(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """The CPU-sized training recipe: the default of the built-in datasets and of "train on
-    my own data" (experiments/dev_suite has the evidence for each setting).
+    my own data" (the evidence: experiments/dev_suite; for the equivariance range,
+    experiments/time_to_accuracy).
 
     Only what the paper leaves to taste changes: 256-wide 3-block trunks instead of
     1024 x 6, Adam (lr 3e-3, x0.1 at epoch 8 of 10) instead of SGD, no weight decay,
