@@ -64,13 +64,8 @@ def table(labels: list[str], values: dict, fitted: dict) -> str:
 
 def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float,
            xlabel: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     datasets = sorted(fitted)
-    fig, axes = panels(plt, len(datasets), (3.2, 2.8))
+    fig, axes = panels(len(datasets), (3.2, 2.8))
     x = np.arange(len(labels))
     for ax, d in zip(axes.flat, datasets):
         means = []
@@ -84,7 +79,7 @@ def figure(labels: list[str], values: dict, fitted: dict, path: str, at: float,
         ax.set_title(d)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(f"test MPJPE at {at / 60:g} min")
-    save_panels(plt, fig, axes, len(datasets), path)
+    save_panels(fig, axes, len(datasets), path)
 
 
 def main() -> None:

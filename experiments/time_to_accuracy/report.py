@@ -101,13 +101,8 @@ def table(runs: list[dict], at: list[float], recipes: list[str], base: dict,
 
 def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = None) -> None:
     supervised = supervised or {}
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     datasets = sorted({r["dataset"] for r in runs})
-    fig, axes = panels(plt, len(datasets), (4, 3.2))
+    fig, axes = panels(len(datasets), (4, 3.2))
     colours = {}
     for ax, d in zip(axes.flat, datasets):
         labelled = set()  # one legend entry per recipe, however many seeds
@@ -128,23 +123,31 @@ def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = No
         ax.set_yscale("log")
         ax.set_xlabel("training wall time (min)")
         ax.set_ylabel("test MPJPE")
-    save_panels(plt, fig, axes, len(datasets), path)
+    save_panels(fig, axes, len(datasets), path)
 
 
-def panels(plt, n: int, size: tuple[float, float]):
-    """A figure of ``n`` panels, at most 4 a row, each ``size`` inches."""
+def panels(n: int, size: tuple[float, float]):
+    """A figure of ``n`` panels, at most 4 a row, each ``size`` inches (matplotlib is
+    imported here, off-screen, so that the tables need no plotting library)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     cols = min(4, n)
     rows = -(-n // cols)
     return plt.subplots(rows, cols, figsize=(size[0] * cols, size[1] * rows), squeeze=False)
 
 
-def save_panels(plt, fig, axes, n: int, path: str) -> None:
+def save_panels(fig, axes, n: int, path: str) -> None:
     """Hides the unused panels, puts the legend on the first and writes ``path``."""
     for ax in axes.flat[n:]:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
     plt.close(fig)
 
 
