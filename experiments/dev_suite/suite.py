@@ -21,7 +21,8 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
 ``OUT/runs/VARIANT/DATASET__sSEED`` (a finished run is not run again; an unfinished one
-resumes), ``--jobs`` of them at a time, each pinned to one core. The table of the datasets
+resumes), ``--jobs`` of them at a time, each pinned to one core, in the order seed, dataset,
+variant (the order of the flags). The table of the datasets
 and seeds asked for is printed; ``OUT/VARIANT.md`` gets the table of every finished run of the
 variant. It gives per dataset the mean (and spread) over seeds of: the rigid
 baseline (the training mean shape, best rigid fit to each view) and zero depth; C3DPO after
@@ -259,10 +260,12 @@ def main(argv):
     os.makedirs(FLAGS.out, exist_ok=True)
     if not FLAGS.report_only:
         data = {d: make_data(d, FLAGS.data_root, FLAGS.out) for d in FLAGS.datasets}
+        # Seed, then dataset, then variant: a screen of several variants that is stopped
+        # early has compared all of them on the first datasets and seeds asked for.
         jobs = []
-        for name, overrides in variants:
-            for seed in FLAGS.seeds:
-                for d in FLAGS.datasets:
+        for seed in FLAGS.seeds:
+            for d in FLAGS.datasets:
+                for name, overrides in variants:
                     workdir = run_dir(FLAGS.out, name, d, seed)
                     if not is_finished(workdir):
                         jobs.append((workdir, command(data[d], overrides, seed, workdir)))
