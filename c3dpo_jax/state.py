@@ -43,8 +43,9 @@ class OptimConfig:
     lr_milestones: tuple[int, ...] = ()  # in epochs
     gamma: float = 0.1
     warmup_steps: int = 0
-    # "multistep": x gamma at each milestone; "cosine": from lr to 0 over cosine_steps steps
-    # (after any warm-up); milestones and gamma are then unused.
+    # "multistep": x gamma at each milestone; "cosine": from lr to 0 over cosine_steps steps;
+    # milestones and gamma are then unused. warmup_steps > 0 scales the first steps of either
+    # linearly from 0, without moving them.
     schedule: str = "multistep"
     cosine_steps: int = 0
 
@@ -80,8 +81,11 @@ def make_schedule(cfg: OptimConfig, steps_per_epoch: int) -> optax.Schedule:
         boundaries = {int(m) * steps_per_epoch: cfg.gamma for m in cfg.lr_milestones}
         schedule = optax.piecewise_constant_schedule(cfg.lr, boundaries)
     if cfg.warmup_steps > 0:
-        warmup = optax.linear_schedule(0.0, cfg.lr, cfg.warmup_steps)
-        schedule = optax.join_schedules([warmup, schedule], [cfg.warmup_steps])
+        # The warm-up scales the schedule's first steps from 0 up to 1; milestones and the
+        # cosine keep their absolute steps (a decay "at epoch 8" stays at epoch 8).
+        ramp = optax.linear_schedule(0.0, 1.0, cfg.warmup_steps)
+        after = schedule
+        return lambda step: ramp(step) * after(step)
     return schedule
 
 

@@ -138,6 +138,16 @@ def test_learning_rate_milestones_are_given_in_epochs():
                                [1e-3, 1e-4, 1e-4, 1e-5], rtol=1e-6)
 
 
+def test_warm_up_ramps_the_rate_without_moving_the_milestones():
+    cfg = OptimConfig(lr=2e-3, lr_milestones=(2,), gamma=0.1, warmup_steps=150)
+    sched = make_schedule(cfg, steps_per_epoch=100)
+    t = np.array([0, 75, 149, 150, 199, 200, 250, 400])
+    # written out by hand: the rate rises linearly to 2e-3 at step 150, then the x0.1
+    # decay happens at step 200 (epoch 2), not 150 steps later
+    expected = 2e-3 * np.minimum(t / 150.0, 1.0) * np.where(t >= 200, 0.1, 1.0)
+    np.testing.assert_allclose([float(sched(s)) for s in t], expected, rtol=1e-5, atol=1e-12)
+
+
 def test_class_balanced_sampling_draws_classes_uniformly():
     group = np.array([0] * 90 + [1] * 10)
     data = KeypointData(kp=np.zeros((100, 3, 2)), vis=np.ones((100, 3)), group=group,
