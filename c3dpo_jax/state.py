@@ -74,7 +74,8 @@ def schedule_problem(schedule, cosine_steps) -> str | None:
 
 def make_schedule(cfg: OptimConfig, steps_per_epoch: int) -> optax.Schedule:
     """Multistep decay with milestones given in epochs (converted to steps), or a cosine
-    decay to 0 over ``cosine_steps``; optional linear warm-up before either."""
+    decay to 0 over ``cosine_steps``; an optional linear warm-up scales the first steps of
+    either."""
     if cfg.schedule == "cosine":  # OptimConfig has checked the settings
         schedule = optax.cosine_decay_schedule(cfg.lr, cfg.cosine_steps)
     else:
