@@ -175,6 +175,10 @@ class RunSpec:
                     "config.loss.%s_ramp=%s ends after the run's %d steps: the weight never "
                     "reaches config.loss.w_%s_final (set a ramp inside the run)", term,
                     ramp, spec.total_steps, term)
+        if spec.optim.warmup_steps > spec.total_steps:
+            logging.warning(
+                "config.optim.warmup_steps=%d is longer than the run's %d steps: the learning "
+                "rate never reaches config.optim.lr", spec.optim.warmup_steps, spec.total_steps)
         return spec
 
     def optimizer(self) -> optax.GradientTransformation:

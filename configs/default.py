@@ -152,4 +152,5 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         for term in ("canonicalization", "deformation"):  # loss-weight ramps: same fractions
             ramp = c.loss[f"{term}_ramp"]
             c.loss[f"{term}_ramp"] = tuple(s * c.train.num_steps // recipe_steps for s in ramp)
+        c.optim.warmup_steps = c.optim.warmup_steps * c.train.num_steps // recipe_steps
     return c
