@@ -15,8 +15,8 @@ makes every view take one of them early on, after which the paper's objective tr
 (experiments/dev_suite, sixth screen: on real human motion it stops the error from rising
 as training goes on). ``--config.loss.w_deformation=0`` trains the paper's objective.
 The learning rate is warmed up linearly over the first 500 steps: at the full rate from
-step 0, one seed in ten of the suite's humans started with part of the views put behind the
-body, a state the training never left (experiments/dev_suite, eleventh screen).
+step 0, one seed in ten of the suite's humans started with part of the views lifted as
+mirror images, a state the training never left (experiments/dev_suite, eleventh screen).
 """
 
 from configs import default
