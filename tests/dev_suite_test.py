@@ -83,3 +83,31 @@ def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):
     rigid, rank1 = json.loads(out.strip().splitlines()[-1])
     np.testing.assert_allclose(rigid, 0.0, atol=1e-4)
     assert rank1[0] > 0.05 and rank1[1] < 1e-3 and rank1[2] > 0.01
+
+
+def test_few_point_sets_are_the_full_sets_views_of_their_points(tmp_path):
+    """``cmu131_k8``: the full set's frames in each split and its training cameras, only its
+    8 points (each training view the full view's points recentred and rescaled by one
+    factor; the test cameras are drawn after the training views' per-point draws, so they
+    differ)."""
+    (tmp_path / "mocap").mkdir()
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
+    np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
+             clip=np.repeat(np.arange(3), 20))
+    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(SUITE)!r}); import suite; "
+            f"print(json.dumps([suite.make_data(n, {str(tmp_path)!r}, {str(tmp_path / 'out')!r}) "
+            "for n in ('cmu131', 'cmu131_k8')]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True).stdout
+    full, few = json.loads(out.strip().splitlines()[-1])
+    assert (full["n_keypoints"], few["n_keypoints"]) == (17, 8)
+    assert (full["n_train"], full["n_test"]) == (few["n_train"], few["n_test"])
+    with open(full["train"]) as f:
+        a = np.asarray([v["kp_loc"] for v in json.load(f)["data"]], dtype=np.float64)
+    with open(few["train"]) as f:
+        b = np.asarray([v["kp_loc"] for v in json.load(f)["data"]], dtype=np.float64)
+    a = a[..., [0, 2, 3, 5, 6, 10, 13, 16]]
+    a, b = a - a.mean(-1, keepdims=True), b - b.mean(-1, keepdims=True)
+    scale = (a * b).sum() / (a * a).sum()
+    np.testing.assert_allclose(b, scale * a, atol=1e-5)

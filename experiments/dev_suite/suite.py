@@ -16,7 +16,11 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   5 blocks of every clip (unseen stretches of each motion);
 - ``deepmimic_clips`` (not in the default list): the same views with 3 of the 15 clips held
   out whole (unseen motions);
-- ``humans``: the built-in synthetic humans (configs/humans.py's data, protocol ``up3d``).
+- ``humans``: the built-in synthetic humans (configs/humans.py's data, protocol ``up3d``);
+- ``cmu131_k8`` and ``face_k8`` (not in the default list): 8 of the full set's points (CMU
+  131's pelvis, knees, ankles, head and wrists; every fifth point of the face), the same
+  frames in each split and the same training cameras, for data with far fewer points than
+  the suite's.
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -56,6 +60,11 @@ NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # or whole "clips" (unseen motions; not in the default list).
 MOCAP = {"deepmimic": "blocks", "cmu131": "blocks", "deepmimic_clips": "clips"}
 DATASETS = NRSFM + ("deepmimic", "cmu131", "humans")
+# Few-point sets (not in the default list): a full set's views with a subset of its points,
+# for data with far fewer points than the suite's (where D nears 3K).
+SUBSETS = {"cmu131_k8": ("cmu131", (0, 2, 3, 5, 6, 10, 13, 16)),  # pelvis, knees, ankles,
+                                                                   # head, wrists
+           "face_k8": ("face", tuple(range(0, 40, 5)))}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -97,14 +106,17 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             train, test = load_splits(humans_config.get_config().data)
             protocol = "up3d"
         else:
-            folder = "nrsfm" if name in NRSFM else "mocap"
-            path = os.path.join(data_root, folder, f"{name.removesuffix('_clips')}.npz")
+            full, points = SUBSETS.get(name, (name, None))
+            folder = "nrsfm" if full in NRSFM else "mocap"
+            path = os.path.join(data_root, folder, f"{full.removesuffix('_clips')}.npz")
             if not os.path.exists(path):
                 raise app.UsageError(f"{path} not found (--data_root)")
             x = importers.load_sequence(path)
-            kw = {} if name in NRSFM else dict(
+            kw = {} if full in NRSFM else dict(
                 views_per_frame=3, clip=importers.load_clips(path),
-                hold_out=MOCAP.get(name, "blocks"), n_blocks=5)
+                hold_out=MOCAP.get(full, "blocks"), n_blocks=5)
+            if points is not None:
+                x = x[:, list(points)]
             train, test = importers.views_from_sequence(x, seed=0, name=name, **kw)
             protocol = "default"
         os.makedirs(os.path.dirname(info_path), exist_ok=True)
