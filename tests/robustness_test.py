@@ -56,3 +56,17 @@ def test_report_tables_every_cell_and_draws_the_heat_maps(robustness, tmp_path):
     assert rows[0] == "| 0.1 | 0.120 (0.220) | 0.130 (0.230) |"  # 17 points, sigma 0.1
     assert rows[1] == "| 0.1 | 0.160 (0.260) | - |"  # 97 points: the missing cell
     assert os.path.getsize(tmp_path / "robustness.png") > 1000
+
+
+def test_report_averages_the_seeds_and_says_when_one_is_missing(robustness, tmp_path):
+    grid = [(0, 0.0, 0.0), (0, 0.0, 0.4)]
+    for cell, seed, mpjpe in ((grid[0], 0, 0.10), (grid[0], 1, 0.14), (grid[1], 1, 0.30)):
+        workdir = tmp_path / "runs" / robustness.cell_name(*cell, seed)
+        workdir.mkdir(parents=True)
+        (workdir / "eval_results.json").write_text(json.dumps({"final": {"mpjpe": 0.0}}))
+        (workdir / "joints.json").write_text(json.dumps(dict(mpjpe=mpjpe, rigid=0.2 + seed / 10,
+                                                             visible=1.0)))
+    assert robustness.cell_name(0, 0.0, 0.0, 0) == "k17_s0_p0"  # seed 0 keeps its name
+    row = next(line for line in robustness.report(str(tmp_path), grid, (0, 1)).splitlines()
+               if line.startswith("| 0 |"))
+    assert row == "| 0 | 0.120 ± 0.020 (0.250) | 0.300 ± 0.000 (n=1) (0.300) |"

@@ -10,9 +10,11 @@ on the 17 joints, whatever the model was trained on (the paper's "representative
 
   python experiments/robustness/run.py                      # the grid, then table + figure
   python experiments/robustness/run.py --report_only        # table + figure of the runs made
+  python experiments/robustness/run.py --dense=0,80 --grid_seeds=0,1   # two seeds a cell
 
-Runs go to ``OUT/runs/kK_sSIGMA_pP`` (a finished run is not run again), ``--jobs`` at a
-time, one core each; ``OUT/robustness.md`` and ``OUT/robustness.png`` are the table and the
+Runs go to ``OUT/runs/kK_sSIGMA_pP`` (seeds other than 0: ``..._seedN``; a finished run is
+not run again), ``--jobs`` at a time, one core each; a cell reports the mean over the seeds
+asked for (± their standard deviation with more than one); ``OUT/robustness.md`` and ``OUT/robustness.png`` are the table and the
 heat maps. Each cell also scores the rigid baseline (the training mean shape of the
 joints, best rigid fit to each corrupted view) on the same joints.
 """
@@ -36,7 +38,8 @@ flags.DEFINE_list("sigmas", ["0", "0.05", "0.1"], "2D noise std, in median RMS r
 flags.DEFINE_list("occlusions", ["0", "0.2", "0.4"], "probability of hiding a point")
 flags.DEFINE_list("dense", ["0", "80", "500"], "surface points added to the 17 joints")
 flags.DEFINE_integer("steps", 3000, "training steps of every run")
-flags.DEFINE_integer("grid_seed", 0, "seed of the training and of the corruption")
+flags.DEFINE_list("grid_seeds", ["0"], "seeds of the training and of the corruption; a cell "
+                  "reports their mean (and spread, with several)")
 flags.DEFINE_string("grid_out", os.path.join(HERE, "results"), "data, runs, table, figure")
 flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
 flags.DEFINE_bool("report_only", False, "only the table and figure of the runs made")
@@ -44,8 +47,9 @@ flags.DEFINE_bool("report_only", False, "only the table and figure of the runs m
 N_JOINTS = 17
 
 
-def cell_name(dense: int, sigma: float, p: float) -> str:
-    return f"k{N_JOINTS + dense}_s{sigma:g}_p{p:g}"
+def cell_name(dense: int, sigma: float, p: float, seed: int = 0) -> str:
+    """A cell's name; seeds other than 0 add ``_seedN`` (seed 0's runs keep the plain name)."""
+    return f"k{N_JOINTS + dense}_s{sigma:g}_p{p:g}" + (f"_seed{seed}" if seed else "")
 
 
 def corrupt(data, sigma: float, p: float, radius: float, rng: np.random.Generator):
@@ -73,7 +77,7 @@ def make_cell(dense: int, sigma: float, p: float, out: str, seed: int) -> dict:
     """Writes a cell's corrupted train/test JSON once; returns their paths and K."""
     from c3dpo_jax.data import humans, json_dataset
 
-    name = cell_name(dense, sigma, p)
+    name = cell_name(dense, sigma, p, seed)
     paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
     if not all(os.path.exists(q) for q in paths.values()):
         train, test = humans.make_splits(dense_points=dense, self_occlusion=False, seed=0)
@@ -86,7 +90,7 @@ def make_cell(dense: int, sigma: float, p: float, out: str, seed: int) -> dict:
     return dict(paths, n_keypoints=N_JOINTS + dense)
 
 
-def command(cell: dict, workdir: str) -> list[str]:
+def command(cell: dict, workdir: str, seed: int) -> list[str]:
     """The CLI call of one cell: the built-in humans' recipe (configs/humans.py) on the
     cell's files, ``--steps`` steps with the learning rate x0.1 for the last 20%."""
     steps = FLAGS.steps
@@ -95,7 +99,7 @@ def command(cell: dict, workdir: str) -> list[str]:
             f"--config.data.train_path={cell['train']}",
             f"--config.data.test_path={cell['test']}",
             f"--config.model.n_keypoints={cell['n_keypoints']}",
-            f"--config.seed={FLAGS.grid_seed}", "--config.train.progress_bar=False",
+            f"--config.seed={seed}", "--config.train.progress_bar=False",
             f"--config.train.num_steps={steps}",
             f"--config.train.samples_per_epoch={256 * steps // 5}",
             "--config.train.epochs=5", "--config.optim.lr_milestones=(4,)",
@@ -127,13 +131,23 @@ def score(workdir: str, make) -> dict:
     return out
 
 
-def report(out: str, grid: list[tuple[int, float, float]], seed: int = 0) -> str:
+def report(out: str, grid: list[tuple[int, float, float]], seeds=(0,)) -> str:
+    """The table of every cell of ``grid``: the mean over the finished runs of ``seeds``
+    ("± std" with more than one, and how many when fewer than asked), the rigid baseline's
+    mean in brackets."""
     scores = {}
     for dense, sigma, p in grid:
-        workdir = os.path.join(out, "runs", cell_name(dense, sigma, p))
-        if is_finished(workdir):
-            scores[(dense, sigma, p)] = score(
-                workdir, lambda d=dense, s=sigma, q=p: make_cell(d, s, q, out, seed))
+        runs = []
+        for seed in seeds:
+            workdir = os.path.join(out, "runs", cell_name(dense, sigma, p, seed))
+            if is_finished(workdir):
+                runs.append(score(workdir, lambda d=dense, s=sigma, q=p, r=seed:
+                                  make_cell(d, s, q, out, r)))
+        if runs:
+            scores[(dense, sigma, p)] = {
+                "mpjpe": float(np.mean([r["mpjpe"] for r in runs])),
+                "std": float(np.std([r["mpjpe"] for r in runs])),
+                "rigid": float(np.mean([r["rigid"] for r in runs])), "n": len(runs)}
     sigmas = sorted({g[1] for g in grid})
     occl = sorted({g[2] for g in grid})
     lines = []
@@ -143,12 +157,19 @@ def report(out: str, grid: list[tuple[int, float, float]], seed: int = 0) -> str
                   "| sigma \\ p | " + " | ".join(f"{p:g}" for p in occl) + " |",
                   "|---|" + "---|" * len(occl)]
         for sigma in sigmas:
-            cells = [f"{scores[k]['mpjpe']:.3f} ({scores[k]['rigid']:.3f})"
-                     if (k := (dense, sigma, p)) in scores else "-" for p in occl]
+            cells = [_entry(scores[k], len(seeds)) if (k := (dense, sigma, p)) in scores
+                     else "-" for p in occl]
             lines.append(f"| {sigma:g} | " + " | ".join(cells) + " |")
         lines.append("")
     _figure(out, scores, sigmas, occl)
     return "\n".join(lines)
+
+
+def _entry(cell: dict, n_seeds: int) -> str:
+    text = f"{cell['mpjpe']:.3f}"
+    if n_seeds > 1:
+        text += f" ± {cell['std']:.3f}" + (f" (n={cell['n']})" if cell["n"] < n_seeds else "")
+    return text + f" ({cell['rigid']:.3f})"
 
 
 def _figure(out: str, scores: dict, sigmas: list[float], occl: list[float]) -> None:
@@ -189,15 +210,17 @@ def main(argv):
     out = FLAGS.grid_out
     grid = [(int(d), float(s), float(p)) for d in FLAGS.dense for s in FLAGS.sigmas
             for p in FLAGS.occlusions]
+    seeds = [int(s) for s in FLAGS.grid_seeds]
     if not FLAGS.report_only:
         jobs = []
-        for dense, sigma, p in sorted(grid, key=lambda g: -g[0]):  # the slowest first
-            workdir = os.path.join(out, "runs", cell_name(dense, sigma, p))
-            if not is_finished(workdir):
-                jobs.append((workdir, command(make_cell(dense, sigma, p, out, FLAGS.grid_seed),
-                                              workdir)))
+        for seed in seeds:
+            for dense, sigma, p in sorted(grid, key=lambda g: -g[0]):  # the slowest first
+                workdir = os.path.join(out, "runs", cell_name(dense, sigma, p, seed))
+                if not is_finished(workdir):
+                    cell = make_cell(dense, sigma, p, out, seed)
+                    jobs.append((workdir, command(cell, workdir, seed)))
         run_all(jobs, FLAGS.jobs, out)
-    text = report(out, grid, FLAGS.grid_seed)
+    text = report(out, grid, seeds)
     with open(os.path.join(out, "robustness.md"), "w") as f:
         f.write(text)
     print(text)
