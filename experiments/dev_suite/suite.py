@@ -17,10 +17,10 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 - ``deepmimic_clips`` (not in the default list): the same views with 3 of the 15 clips held
   out whole (unseen motions);
 - ``humans``: the built-in synthetic humans (configs/humans.py's data, protocol ``up3d``);
-- ``cmu131_k8`` and ``face_k8`` (not in the default list): 8 of the full set's points (CMU
-  131's pelvis, knees, ankles, head and wrists; every fifth point of the face), the same
-  frames in each split and the same training cameras, for data with far fewer points than
-  the suite's.
+- ``cmu131_k8``, ``deepmimic_k8``, ``cmu131_k12`` and ``face_k8`` (not in the default
+  list): 8 or 12 of the full set's points (the pelvis, knees, ankles, head and wrists, and
+  for 12 the hips and elbows; every fifth point of the face), the same frames in each split
+  and the same training cameras, for data with far fewer points than the suite's.
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -64,6 +64,9 @@ DATASETS = NRSFM + ("deepmimic", "cmu131", "humans")
 # for data with far fewer points than the suite's (where D nears 3K).
 SUBSETS = {"cmu131_k8": ("cmu131", (0, 2, 3, 5, 6, 10, 13, 16)),  # pelvis, knees, ankles,
                                                                    # head, wrists
+           "deepmimic_k8": ("deepmimic", (0, 2, 3, 6, 7, 11, 14, 17)),  # the same joints
+           "cmu131_k12": ("cmu131", (0, 1, 2, 3, 4, 5, 6, 10, 12, 13, 15, 16)),  # and hips,
+                                                                              # elbows
            "face_k8": ("face", tuple(range(0, 40, 5)))}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
