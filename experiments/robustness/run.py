@@ -14,9 +14,10 @@ on the 17 joints, whatever the model was trained on (the paper's "representative
 
 Runs go to ``OUT/runs/kK_sSIGMA_pP`` (seeds other than 0: ``..._seedN``; a finished run is
 not run again), ``--jobs`` at a time, one core each; a cell reports the mean over the seeds
-asked for (± their standard deviation with more than one); ``OUT/robustness.md`` and ``OUT/robustness.png`` are the table and the
-heat maps. Each cell also scores the rigid baseline (the training mean shape of the
-joints, best rigid fit to each corrupted view) on the same joints.
+asked for (± their standard deviation with more than one); ``OUT/robustness.md`` and
+``OUT/robustness.png`` are the table and the heat maps. Each cell also scores the rigid
+baseline (the training mean shape of the joints, best rigid fit to each corrupted view) on
+the same joints.
 """
 
 import json
