@@ -11,6 +11,16 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SUITE = os.path.join(ROOT, "experiments", "dev_suite", "suite.py")
 
 
+def _suite_value(module: str, expression: str):
+    """The JSON value of ``expression`` after ``import MODULE`` from the suite's folder, in a
+    subprocess (the suite's absl flags must not meet main's)."""
+    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(SUITE)!r}); "
+            f"import {module}; print(json.dumps({expression}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def _mocap(path: str, n_clips: int = 3, frames: int = 20) -> None:
     """A small 'mocap' file as in shared/data/mocap: X (F, 3, K), clip ids, names."""
     rng = np.random.default_rng(0)
@@ -75,12 +85,8 @@ def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):
         train, test = importers.views_from_sequence(x, views_per_frame=4, seed=0, name=name)
         for split, data in (("train", train), ("test", test)):
             json_dataset.save(data, str(tmp_path / f"{name}_{split}.json"))
-    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(SUITE)!r}); import analyse; "
-            f"print(json.dumps([list(analyse.floors(n, {str(tmp_path)!r}, 2).values()) "
-            "for n in ('rigid', 'rank1')]))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=ROOT, check=True).stdout
-    rigid, rank1 = json.loads(out.strip().splitlines()[-1])
+    rigid, rank1 = _suite_value("analyse", f"[list(analyse.floors(n, {str(tmp_path)!r}, 2)"
+                                           ".values()) for n in ('rigid', 'rank1')]")
     np.testing.assert_allclose(rigid, 0.0, atol=1e-4)
     assert rank1[0] > 0.05 and rank1[1] < 1e-3 and rank1[2] > 0.01
 
@@ -95,12 +101,9 @@ def test_few_point_sets_are_the_full_sets_views_of_their_points(tmp_path):
     x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
     np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
              clip=np.repeat(np.arange(3), 20))
-    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(SUITE)!r}); import suite; "
-            f"print(json.dumps([suite.make_data(n, {str(tmp_path)!r}, {str(tmp_path / 'out')!r}) "
-            "for n in ('cmu131', 'cmu131_k8')]))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=ROOT, check=True).stdout
-    full, few = json.loads(out.strip().splitlines()[-1])
+    full, few = _suite_value("suite", f"[suite.make_data(n, {str(tmp_path)!r}, "
+                                      f"{str(tmp_path / 'out')!r}) "
+                                      "for n in ('cmu131', 'cmu131_k8')]")
     assert (full["n_keypoints"], few["n_keypoints"]) == (17, 8)
     assert (full["n_train"], full["n_test"]) == (few["n_train"], few["n_test"])
     with open(full["train"]) as f:
