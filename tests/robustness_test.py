@@ -69,4 +69,4 @@ def test_report_averages_the_seeds_and_says_when_one_is_missing(robustness, tmp_
     assert robustness.cell_name(0, 0.0, 0.0, 0) == "k17_s0_p0"  # seed 0 keeps its name
     row = next(line for line in robustness.report(str(tmp_path), grid, (0, 1)).splitlines()
                if line.startswith("| 0 |"))
-    assert row == "| 0 | 0.120 ± 0.020 (0.250) | 0.300 ± 0.000 (n=1) (0.300) |"
+    assert row == "| 0 | 0.120 ± 0.020 (0.250) | 0.300 (n=1) (0.300) |"

@@ -168,8 +168,10 @@ def report(out: str, grid: list[tuple[int, float, float]], seeds=(0,)) -> str:
 
 def _entry(cell: dict, n_seeds: int) -> str:
     text = f"{cell['mpjpe']:.3f}"
-    if n_seeds > 1:
-        text += f" ± {cell['std']:.3f}" + (f" (n={cell['n']})" if cell["n"] < n_seeds else "")
+    if cell["n"] > 1:
+        text += f" ± {cell['std']:.3f}"
+    if cell["n"] < n_seeds:
+        text += f" (n={cell['n']})"
     return text + f" ({cell['rigid']:.3f})"
 
 
