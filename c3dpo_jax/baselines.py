@@ -88,6 +88,8 @@ def project(scale: np.ndarray, rows: np.ndarray, centred: np.ndarray,
 
 
 _TINY = np.finfo(np.float64).tiny
+# The fewest visible points for which fit_camera refines the camera (see there).
+MIN_REFINED = 4
 
 
 def _sphere_argmax(quad: np.ndarray, lin: np.ndarray, n_bisect: int = 60) -> np.ndarray:
@@ -170,8 +172,12 @@ def fit_camera(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int
     error and converge from any start to the camera (rotation, least-squares scale,
     translation) with the least 2D error; per view, whichever of it and the one-shot camera
     has the lower error (the one-shot one only where the fit is degenerate, e.g. all visible
-    points coincide). A mirror image of the shapes needs no separate fit: it projects as
-    the shapes under another rotation (the same rows, the depth negated).
+    points coincide). Views with fewer than ``MIN_REFINED`` visible points keep the one-shot
+    camera: three points give as many equations as the camera has unknowns (rotation and
+    scale), and the least-error camera is then often a near edge-on view with a scale
+    hundreds of times the true one, which puts the hidden points and the depth far off. A
+    mirror image of the shapes needs no separate fit: it projects as the shapes under
+    another rotation (the same rows, the depth negated).
 
     ``shapes`` is (N, 3) or (M, N, 3). Returns ``(scale (M,), rows (M, 2, 3), centred
     shapes (M, N, 3), kp_mean (M, 2))``: the projection of point n of view m is
@@ -192,8 +198,9 @@ def fit_camera(shapes: np.ndarray, kp: np.ndarray, vis: np.ndarray, n_iters: int
         return camera
     axis = np.cross(camera[1][:, 0], camera[1][:, 1]) if start_axis is None else start_axis
     best = _refine_camera(axis, s, y, n_iters) + camera[2:]
-    better = (reprojection_residual(project(*best), kp, w)
-              < reprojection_residual(project(*camera), kp, w))
+    better = ((reprojection_residual(project(*best), kp, w)
+               < reprojection_residual(project(*camera), kp, w))
+              & (w.sum(1) >= MIN_REFINED))
     return (np.where(better, best[0], camera[0]),
             np.where(better[:, None, None], best[1], camera[1]), centred, kp_mean)
 

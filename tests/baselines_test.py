@@ -116,7 +116,30 @@ def test_degenerate_views_give_finite_fits():
     one_shot = _residual(baselines.fit_camera(shapes, kp, vis, n_iters=0), kp, vis)
     got = _residual(camera, kp, vis)
     assert np.all(got <= one_shot + 1e-12)
-    assert got[2] < 1e-20  # two points: fitted exactly
+    np.testing.assert_array_equal(got[:4], one_shot[:4])  # < 4 points: the one-shot camera
+
+
+def test_views_with_three_points_keep_the_one_shot_scale():
+    # The built-in humans' mean shape (limbs: nearly collinear triples), views of it deformed
+    # a little, three visible points each: the least-2D-error camera of some views is a near
+    # edge-on one with a scale hundreds of times the true 1, which fit_camera must not return.
+    from c3dpo_jax.data import humans
+
+    shape = baselines.procrustes_mean_shape(humans.make_split(20, views_per_pose=10, seed=1).kp3d)
+    rng = np.random.default_rng(0)
+    n_views = 4000
+    rots = Rotation.random(n_views, random_state=1).as_matrix()
+    kp = np.einsum("mij,mnj->mni", rots[:, :2], shape + 0.05 * rng.normal(size=(n_views, 17, 3)))
+    vis = np.zeros((n_views, 17))
+    for m in range(n_views):
+        vis[m, rng.choice(17, 3, replace=False)] = 1
+    y = (kp - baselines.visible_mean(kp, vis)[:, None]) * vis[..., None]
+    x = (shape - baselines.visible_mean(np.broadcast_to(shape, (n_views, 17, 3)), vis)[:, None])
+    least_error_scale, _ = baselines._refine_camera(rots[:, 2], x * vis[..., None], y, 10)
+    assert least_error_scale.max() > 300 and np.mean(least_error_scale > 3) > 0.01
+    scale = baselines.fit_camera(shape, kp, vis)[0]
+    np.testing.assert_array_equal(scale, baselines.fit_camera(shape, kp, vis, n_iters=0)[0])
+    assert scale.max() < 100 and np.mean(scale > 3) < 0.005 and 0.5 < np.median(scale) < 1.5
 
 
 def test_procrustes_mean_recovers_the_shape_up_to_rotation():

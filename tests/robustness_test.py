@@ -70,3 +70,20 @@ def test_report_averages_the_seeds_and_says_when_one_is_missing(robustness, tmp_
     row = next(line for line in robustness.report(str(tmp_path), grid, (0, 1)).splitlines()
                if line.startswith("| 0 |"))
     assert row == "| 0 | 0.120 ± 0.020 (0.250) | 0.300 (n=1) (0.300) |"
+
+
+def test_rescoring_the_rigid_baseline_keeps_the_model_score(robustness, tmp_path):
+    from c3dpo_jax.data import json_dataset
+
+    cell = robustness.make_cell(0, 0.05, 0.4, str(tmp_path), seed=1)
+    from_files = robustness.rigid_mpjpe(json_dataset.load(cell["train"]),
+                                        json_dataset.load(cell["test"]))
+    workdir = tmp_path / "runs" / robustness.cell_name(0, 0.05, 0.4, 1)
+    workdir.mkdir(parents=True)
+    (workdir / "joints.json").write_text(json.dumps(dict(mpjpe=0.123, rigid=9.0, visible=0.6)))
+    robustness.rescore_rigid(str(workdir), 0, 0.05, 0.4, seed=1)
+    scores = json.loads((workdir / "joints.json").read_text())
+    assert scores["mpjpe"] == 0.123 and scores["visible"] == 0.6
+    assert scores["rigid"] == pytest.approx(from_files, rel=1e-6)  # views remade alike
+    assert 0.05 < scores["rigid"] < 0.3
+    robustness.rescore_rigid(str(tmp_path / "runs" / "not_run"), 0, 0.05, 0.4, seed=1)  # no-op
