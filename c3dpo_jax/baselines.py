@@ -7,8 +7,9 @@ units, scored with the same protocol as the model:
 - ``fitted mean shape``: the best rigid fit of the mean training shape to each view: the
   scaled orthographic camera (rotation, least-squares scale, translation) with the least
   2D error on the visible points, found by refining the one-shot affine fit (``fit_camera``;
-  the shape's mirror image projects no differently, so it is covered); observed x, y are
-  kept for visible points and the depth is the fitted shape's.
+  the shape's mirror image projects no differently, so it is covered; a view with fewer
+  than 4 visible points keeps the one-shot fit); observed x, y are kept for visible points
+  and the depth is the fitted shape's.
 - ``zero depth``: the same x, y with depth 0 (what a method learns if it learns nothing).
 - ``oracle mean shape`` (``oracle_mean_shape``, needs the test split's 3D ground truth):
   the mean shape rotated and translated onto each ground-truth shape (best rotation,
