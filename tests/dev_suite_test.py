@@ -114,3 +114,28 @@ def test_few_point_sets_are_the_full_sets_views_of_their_points(tmp_path):
     a, b = a - a.mean(-1, keepdims=True), b - b.mean(-1, keepdims=True)
     scale = (a * b).sum() / (a * a).sum()
     np.testing.assert_allclose(b, scale * a, atol=1e-5)
+
+
+def test_ten_camera_sets_hold_out_the_same_frames(tmp_path):
+    """``cmu131_v10``: the full set's frames and split, each frame seen by 10 cameras
+    instead of 3 (frames told apart by the rotation-invariant distances between points)."""
+    (tmp_path / "mocap").mkdir()
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
+    np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
+             clip=np.repeat(np.arange(3), 20))
+    three, ten = _suite_value("suite", f"[suite.make_data(n, {str(tmp_path)!r}, "
+                                       f"{str(tmp_path / 'out')!r}) "
+                                       "for n in ('cmu131', 'cmu131_v10')]")
+    assert ten["n_keypoints"] == three["n_keypoints"] == 17
+    assert (10 * three["n_train"], 10 * three["n_test"]) == (3 * ten["n_train"],
+                                                               3 * ten["n_test"])
+
+    def frames(path):
+        with open(path) as f:
+            views = np.asarray([v["kp_loc_3d"] for v in json.load(f)["data"]])  # (M, 3, K)
+        d = np.linalg.norm(views[:, :, :, None] - views[:, :, None, :], axis=1)
+        return {tuple(np.round(v[np.triu_indices(17, 1)], 4)) for v in d}
+
+    assert frames(three["test"]) == frames(ten["test"])
+    assert len(frames(three["test"])) == three["n_test"] // 3
