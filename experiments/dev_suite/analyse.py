@@ -19,6 +19,10 @@ MPJPE of the model and of the rigid baseline per clip.
 test views whose better orientation is the prediction itself rather than its depth flip:
 near 1 or 0 when every view has the same handedness (0: the whole model is mirrored),
 0.5 when the sign is a coin toss per view, as a user without 3D ground truth would see it.
+
+``camera --runs=DIR,DIR,...``: for trained runs, test MPJPE of the model and of its own
+canonical shapes under the camera with the least 2D error (the rigid baseline's fit): what
+the network's regressed camera costs or gains against an optimised one.
 """
 
 import os
@@ -119,17 +123,40 @@ def sign_agreement(run: str) -> float:
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
 
 
+def camera_refit(run: str) -> tuple[float, float]:
+    """Test MPJPE of the run's model, and of its own canonical shapes under the camera with
+    the least 2D error (``baselines.fit_mean_shape`` with one shape per view: the rigid
+    baseline's fit, the model's shapes instead of the training mean; its least-squares scale
+    absorbs the canonical frame's units): how much the network's regressed camera costs."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
+    rec = c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis)
+    refit = baselines.fit_mean_shape(rec.shape_canonical, test.kp, test.vis)
+    return (evaluation.evaluate(rec.shape_3d, test)["mpjpe"],
+            evaluation.evaluate(refit, test)["mpjpe"])
+
+
+def _each_run(header: str, fn) -> None:
+    """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
+    print(header)
+    for run in FLAGS.runs:
+        try:
+            values = " | ".join(f"{v:.4f}" for v in np.atleast_1d(fn(run)))
+        except FileNotFoundError:  # the committed runs keep no checkpoints
+            values = "no checkpoint (train it again with suite.py)"
+        print(f"| {os.path.relpath(run, FLAGS.out)} | {values} |")
+
+
 def main(argv):
-    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs"):
-        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=...")
+    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera"):
+        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
+                             "| camera --runs=...")
+    if argv[1] == "camera":
+        _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
+                  camera_refit)
+        return
     if argv[1] == "signs":
-        print("| run | sign agreement |\n|---|---|")
-        for run in FLAGS.runs:
-            try:
-                value = f"{sign_agreement(run):.2f}"
-            except FileNotFoundError:  # the committed runs keep no checkpoints
-                value = "no checkpoint (train it again with suite.py)"
-            print(f"| {os.path.relpath(run, FLAGS.out)} | {value} |")
+        _each_run("| run | sign agreement |\n|---|---|", sign_agreement)
         return
     if argv[1] == "floors":
         data_dir = os.path.join(FLAGS.out, "data")
