@@ -37,6 +37,7 @@ sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
 import suite  # noqa: E402
 
 import c3dpo_jax  # noqa: E402
+import c3dpo_jax.cli  # noqa: E402
 from c3dpo_jax import baselines, evaluation  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 
@@ -148,6 +149,7 @@ def _each_run(header: str, fn) -> None:
 
 
 def main(argv):
+    c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
                              "| camera --runs=...")
