@@ -91,19 +91,23 @@ def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):
     assert rank1[0] > 0.05 and rank1[1] < 1e-3 and rank1[2] > 0.01
 
 
+def _made_from_a_small_cmu131(tmp_path, seed: int, names: tuple[str, ...]) -> list[dict]:
+    """``suite.make_data`` of each of ``names`` from a random 60-frame, 3-clip ``cmu131``."""
+    (tmp_path / "mocap").mkdir()
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
+    np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
+             clip=np.repeat(np.arange(3), 20))
+    return _suite_value("suite", f"[suite.make_data(n, {str(tmp_path)!r}, "
+                                 f"{str(tmp_path / 'out')!r}) for n in {names!r}]")
+
+
 def test_few_point_sets_are_the_full_sets_views_of_their_points(tmp_path):
     """``cmu131_k8``: the full set's frames in each split and its training cameras, only its
     8 points (each training view the full view's points recentred and rescaled by one
     factor; the test cameras are drawn after the training views' per-point draws, so they
     differ)."""
-    (tmp_path / "mocap").mkdir()
-    rng = np.random.default_rng(2)
-    x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
-    np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
-             clip=np.repeat(np.arange(3), 20))
-    full, few = _suite_value("suite", f"[suite.make_data(n, {str(tmp_path)!r}, "
-                                      f"{str(tmp_path / 'out')!r}) "
-                                      "for n in ('cmu131', 'cmu131_k8')]")
+    full, few = _made_from_a_small_cmu131(tmp_path, 2, ("cmu131", "cmu131_k8"))
     assert (full["n_keypoints"], few["n_keypoints"]) == (17, 8)
     assert (full["n_train"], full["n_test"]) == (few["n_train"], few["n_test"])
     with open(full["train"]) as f:
@@ -119,14 +123,7 @@ def test_few_point_sets_are_the_full_sets_views_of_their_points(tmp_path):
 def test_ten_camera_sets_hold_out_the_same_frames(tmp_path):
     """``cmu131_v10``: the full set's frames and split, each frame seen by 10 cameras
     instead of 3 (frames told apart by the rotation-invariant distances between points)."""
-    (tmp_path / "mocap").mkdir()
-    rng = np.random.default_rng(3)
-    x = rng.normal(size=(1, 3, 17)) + 0.2 * rng.normal(size=(60, 3, 17))
-    np.savez(tmp_path / "mocap" / "cmu131.npz", X=x.astype(np.float32),
-             clip=np.repeat(np.arange(3), 20))
-    three, ten = _suite_value("suite", f"[suite.make_data(n, {str(tmp_path)!r}, "
-                                       f"{str(tmp_path / 'out')!r}) "
-                                       "for n in ('cmu131', 'cmu131_v10')]")
+    three, ten = _made_from_a_small_cmu131(tmp_path, 3, ("cmu131", "cmu131_v10"))
     assert ten["n_keypoints"] == three["n_keypoints"] == 17
     assert (10 * three["n_train"], 10 * three["n_test"]) == (3 * ten["n_train"],
                                                                3 * ten["n_test"])
