@@ -12,6 +12,14 @@ import time
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 
+def repo_path(path: str) -> str:
+    """``path`` relative to the repository root when it lies inside it, else unchanged: the
+    runs execute there (``run_all``), so a run's recorded data paths name no machine's
+    checkout."""
+    rel = os.path.relpath(os.path.abspath(path), ROOT)
+    return path if rel == ".." or rel.startswith(".." + os.sep) else rel
+
+
 def is_finished(workdir: str) -> bool:
     """Whether the run in ``workdir`` has made its final evaluation."""
     path = os.path.join(workdir, "eval_results.json")

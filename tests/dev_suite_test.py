@@ -136,3 +136,18 @@ def test_ten_camera_sets_hold_out_the_same_frames(tmp_path):
 
     assert frames(three["test"]) == frames(ten["test"])
     assert len(frames(three["test"])) == three["n_test"] // 3
+
+
+def test_recorded_data_paths_are_relative_to_the_repository_inside_it_only(tmp_path,
+                                                                          monkeypatch):
+    """``runner.repo_path``: a path inside the checkout is written relative to its root (where
+    the runs execute), one outside it (another folder, a sibling sharing the root's name as
+    a prefix) unchanged."""
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "experiments"))
+    import runner
+
+    inside = os.path.join(runner.ROOT, "experiments", "dev_suite", "results", "data", "a.json")
+    assert runner.repo_path(inside) == os.path.join("experiments", "dev_suite", "results",
+                                                    "data", "a.json")
+    for outside in (str(tmp_path / "a.json"), runner.ROOT + "_other" + os.sep + "a.json"):
+        assert runner.repo_path(outside) == outside

@@ -55,7 +55,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, run_all  # noqa: E402
+from runner import is_finished, repo_path, run_all  # noqa: E402
 
 NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
@@ -165,8 +165,8 @@ def command(data: dict, overrides: list[str], seed, workdir: str) -> list[str]:
     """The CLI call of one run."""
     args = [sys.executable, "-m", "c3dpo_jax.main", f"--config={FLAGS.config}",
             f"--workdir={workdir}", "--nofigures",
-            f"--config.data.train_path={data['train']}",
-            f"--config.data.test_path={data['test']}",
+            f"--config.data.train_path={repo_path(data['train'])}",
+            f"--config.data.test_path={repo_path(data['test'])}",
             f"--config.data.protocol={data['protocol']}",
             f"--config.model.n_keypoints={data['n_keypoints']}",
             f"--config.seed={seed}", "--config.train.progress_bar=False",

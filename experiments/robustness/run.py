@@ -33,7 +33,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, run_all  # noqa: E402
+from runner import is_finished, repo_path, run_all  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("sigmas", ["0", "0.05", "0.1"], "2D noise std, in median RMS radii")
@@ -118,8 +118,8 @@ def command(cell: dict, workdir: str, seed: int) -> list[str]:
     steps = FLAGS.steps
     return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py",
             f"--workdir={workdir}", "--nofigures",
-            f"--config.data.train_path={cell['train']}",
-            f"--config.data.test_path={cell['test']}",
+            f"--config.data.train_path={repo_path(cell['train'])}",
+            f"--config.data.test_path={repo_path(cell['test'])}",
             f"--config.model.n_keypoints={cell['n_keypoints']}",
             f"--config.seed={seed}", "--config.train.progress_bar=False",
             f"--config.train.num_steps={steps}",
