@@ -41,10 +41,12 @@ import sys
 from absl import app, flags, logging
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))  # for ``configs``
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # for ``runner``
 
 import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
+from runner import repo_path  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, load, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
@@ -251,10 +253,19 @@ def run() -> dict:
         views_per_frame=FLAGS.views_per_frame,
         baselines=baseline_scores(train_data, test_data, protocol, c.model.shape_basis_size),
         curve=curve,
-        config=json.loads(c.to_json_best_effort()),
+        config=_recorded(json.loads(c.to_json_best_effort())),
         devices=str(jax.devices()),
         cpu_affinity=len(os.sched_getaffinity(0)),
     )
+
+
+def _recorded(config: dict) -> dict:
+    """The run's config as the result records it: its view files named relative to the
+    repository when they lie inside it (``runner.repo_path``), not by this checkout's path."""
+    for key in ("train_path", "test_path"):
+        if config["data"].get(key):
+            config["data"][key] = repo_path(config["data"][key])
+    return config
 
 
 def baselines_only() -> None:
