@@ -114,12 +114,17 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
     return rows
 
 
-def sign_agreement(run: str) -> float:
-    """Fraction of the run's test views whose unflipped prediction is the better one."""
+def _test_reconstruction(run: str):
+    """``(test split, the run's model's Reconstruction of it)`` for a suite run."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
-    pred = c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis).shape_3d
-    per = evaluation.mpjpe(evaluation.center_depth(np.asarray(pred), test.vis),
+    return test, c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis)
+
+
+def sign_agreement(run: str) -> float:
+    """Fraction of the run's test views whose unflipped prediction is the better one."""
+    test, rec = _test_reconstruction(run)
+    per = evaluation.mpjpe(evaluation.center_depth(np.asarray(rec.shape_3d), test.vis),
                            evaluation.center_depth(test.kp3d, test.vis), test.vis)
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
 
@@ -129,9 +134,7 @@ def camera_refit(run: str) -> tuple[float, float]:
     the least 2D error (``baselines.fit_mean_shape`` with one shape per view: the rigid
     baseline's fit, the model's shapes instead of the training mean; its least-squares scale
     absorbs the canonical frame's units): how much the network's regressed camera costs."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
-    test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
-    rec = c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis)
+    test, rec = _test_reconstruction(run)
     refit = baselines.fit_mean_shape(rec.shape_canonical, test.kp, test.vis)
     return (evaluation.evaluate(rec.shape_3d, test)["mpjpe"],
             evaluation.evaluate(refit, test)["mpjpe"])
