@@ -23,6 +23,13 @@ near 1 or 0 when every view has the same handedness (0: the whole model is mirro
 ``camera --runs=DIR,DIR,...``: for trained runs, test MPJPE of the model and of its own
 canonical shapes under the camera with the least 2D error (the rigid baseline's fit): what
 the network's regressed camera costs or gains against an optimised one.
+
+``rotations --runs=DIR,DIR,...``: for trained runs, test MPJPE when each view's depth is
+the mean (or the median) of the model's depths for copies of the view turned in-plane
+about its centroid (orthographic depth does not change under an in-plane turn), each copy's
+depth sign first matched to the unturned copy's: M angles spread evenly over the training
+augmentation's range (+-``model.z_augment_rot_angle``), and over the full circle. Averaging
+works where the regressed camera's errors differ between copies.
 """
 
 import os
@@ -140,6 +147,52 @@ def camera_refit(run: str) -> tuple[float, float]:
             evaluation.evaluate(refit, test)["mpjpe"])
 
 
+def _turned_depths(model, kp: np.ndarray, vis: np.ndarray, angles):
+    """``(xy, depths)``: the image x, y of the model's reconstruction of the views ``kp``
+    (M, N, 2; hidden points reprojected), and (A, M, N) its depths for the views turned
+    in-plane by each angle about their visible centroid, mean depth removed, signs matched
+    to the first angle's."""
+    w = vis[..., None]
+    centre = (kp * w).sum(1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1)
+    depths, xy = [], None
+    for a in angles:
+        turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        rec = c3dpo_jax.reconstruct(model, ((kp - centre) @ turn.T + centre).astype(np.float32),
+                                    vis)
+        depth = np.asarray(rec.shape_3d[..., 2], np.float64)
+        xy = np.asarray(rec.shape_3d[..., :2], np.float64) if xy is None else xy
+        depths.append(depth - (depth * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True))
+    sign = np.sign(np.einsum("amn,mn->am", np.array(depths) * vis, depths[0]))
+    return xy, np.array(depths) * np.where(sign < 0, -1.0, 1.0)[..., None]
+
+
+ROTATION_COPIES = (3, 5, 9)
+CIRCLE_COPIES = 16
+
+
+def rotation_average(run: str) -> list[float]:
+    """Test MPJPE of the model, then of the mean and the median depth over
+    ``ROTATION_COPIES`` turned copies within the augmentation range, then over
+    ``CIRCLE_COPIES`` copies around the full circle (mean, median)."""
+    test, _ = _test_reconstruction(run)
+    model = c3dpo_jax.load(run)
+    kp, vis = np.asarray(test.kp, np.float64), np.asarray(test.vis, np.float64)
+    span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
+
+    xy, d = _turned_depths(model, kp, vis, [0.0])
+
+    def score(depth):
+        return evaluation.evaluate(np.concatenate([xy, depth[..., None]], -1), test)["mpjpe"]
+
+    out = [score(d[0])]
+    for m in ROTATION_COPIES:  # odd: the unturned copy first, then pairs +-a
+        half = np.linspace(0.0, span, m // 2 + 1)[1:]
+        d = _turned_depths(model, kp, vis, [0.0, *half, *(-half)])[1]
+        out += [score(d.mean(0)), score(np.median(d, 0))]
+    d = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(CIRCLE_COPIES) / CIRCLE_COPIES)[1]
+    return out + [score(d.mean(0)), score(np.median(d, 0))]
+
+
 def _each_run(header: str, fn) -> None:
     """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
     print(header)
@@ -153,9 +206,15 @@ def _each_run(header: str, fn) -> None:
 
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
-    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera"):
+    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
-                             "| camera --runs=...")
+                             "| camera --runs=... | rotations --runs=...")
+    if argv[1] == "rotations":
+        cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
+        cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
+        _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
+                  + "---|" * len(cols), rotation_average)
+        return
     if argv[1] == "camera":
         _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
                   camera_refit)
