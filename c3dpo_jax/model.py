@@ -48,7 +48,9 @@ class Prediction(Mapping):
       shape_image_coord: (N, 3) the 3D output in the input's coordinates: xy the input
         where visible (``replace_keypoints_with_input``) else the reprojection, depth
         divided by ``keypoint_rescale`` (calibrated units for perspective models).
-      shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised.
+      shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised; with
+        ``test_time_turns`` > 1 its depth (and shape_image_coord's) is the median over
+        the turned copies, while X, R, theta and alpha are the unturned view's.
       shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
@@ -138,6 +140,12 @@ class ModelConfig:
     canonicalization_rot_angle: float = 3.141592653589793
     replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
+    # Not in the release (which is 1): at inference, each view is also turned in-plane
+    # about its centre by angles spread evenly over +-z_augment_rot_angle (the training
+    # augmentation's range), and the depth of every point is the median over the copies
+    # (an orthographic depth does not change under an in-plane turn); odd, orthographic
+    # models trained with z_augment only (see ``forward_eval``).
+    test_time_turns: int = 1
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -344,6 +352,47 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
+def turns_problem(turns: int, projection_type: str, z_augment: bool,
+                  z_augment_rot_angle: float) -> str:
+    """Why ``test_time_turns=turns`` cannot be used with these settings ('' if it can)."""
+    why = [
+        "an odd number" if turns % 2 == 0 else "",
+        "used with model.projection_type='orthographic' only"
+        if projection_type == "perspective" else "",
+        "used with model.z_augment=True and model.z_augment_rot_angle > 0 only (the copies "
+        "are turned within the training augmentation's range)"
+        if turns > 1 and (not z_augment or z_augment_rot_angle == 0) else "",
+    ]
+    return "must be " + " and ".join(w for w in why if w) if any(why) else ""
+
+
+def turn_angles(cfg: ModelConfig) -> Float[Array, " A"]:
+    """The ``test_time_turns - 1`` nonzero in-plane angles of the turned copies: pairs
+    +-a spread evenly up to ``z_augment_rot_angle``."""
+    k = (cfg.test_time_turns - 1) // 2
+    half = cfg.z_augment_rot_angle * jnp.arange(1, k + 1) / k
+    return jnp.concatenate([half, -half])
+
+
+def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, depth):
+    """The median depth (N,) over the view and its copies turned in-plane by
+    ``turn_angles``: each copy's depth about its visible mean, its sign matched to the
+    unturned ``depth``'s, then the unturned mean depth added back."""
+    w = vis / jnp.maximum(jnp.sum(vis), 1.0)
+    centred = depth - jnp.sum(w * depth)
+
+    def copy(angle):
+        c, s = jnp.cos(angle), jnp.sin(angle)
+        out = net.apply(variables, kp_norm @ jnp.array([[c, s], [-s, c]]), vis, False,
+                        method="phi")
+        d = _camera(cfg, out, _shape(net, variables["params"], out["alpha"], class_mask))[0]
+        d = d[:, 2] - jnp.sum(w * d[:, 2])
+        return jnp.where(jnp.sum(w * d * centred) < 0, -d, d)
+
+    copies = jnp.concatenate([centred[None], jax.vmap(copy)(turn_angles(cfg))])
+    return jnp.median(copies, axis=0) + (depth - centred)
+
+
 @_under_precision
 def forward_eval(
     variables: Variables,
@@ -361,6 +410,9 @@ def forward_eval(
     x_canon = _shape(net, variables["params"], phi_out["alpha"], class_mask)
     x_cam, t, rot = _camera(cfg, phi_out, x_canon)
     x_cam = x_cam + t[None]
+    if cfg.test_time_turns > 1:
+        x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, net, variables, kp_norm, vis, class_mask,
+                                                 x_cam[:, 2]))
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image

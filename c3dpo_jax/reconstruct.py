@@ -13,6 +13,7 @@ eval forward (``inference.forward_batch``): a model compiles once per bucket siz
 leading dimensions.
 """
 
+import dataclasses
 import json
 import os
 from typing import Any, NamedTuple
@@ -235,6 +236,7 @@ def reconstruct(
     vis: ArrayLike | list,
     K: ArrayLike | None = None,
     class_mask: ArrayLike | None = None,
+    turns: int | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -245,10 +247,22 @@ def reconstruct(
       vis: (N,) or (B, N), 1 visible, 0 not; every sample needs a visible point.
       K: intrinsics (3, 3) or (B, 3, 3); required by perspective models only.
       class_mask: (N,) or (B, N) block of the sample's class (multi-class models).
+      turns: copies of each view turned in-plane whose median depth is kept (odd; 1: one
+        pass, as the release; None: the model's ``test_time_turns``, which the own-data
+        recipe sets to 5). See ``model.ModelConfig.test_time_turns``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions.
     """
+    if turns is not None:
+        cfg = params.config
+        if not isinstance(turns, int) or isinstance(turns, bool) or turns < 1:
+            raise ValueError(f"turns={turns!r} (must be an integer >= 1, or None)")
+        problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
+                                      cfg.z_augment_rot_angle)
+        if problem:
+            raise ValueError(f"turns={turns} ({problem})")
+        params = params.replace(config=dataclasses.replace(cfg, test_time_turns=turns))
     single, kp, vis, K, class_mask = _check_inputs(params.config, kp, vis, K, class_mask)
     if class_mask is None:
         class_mask = np.ones_like(vis)

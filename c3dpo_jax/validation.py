@@ -14,7 +14,7 @@ import dataclasses
 import math
 from typing import Any
 
-from c3dpo_jax import losses, state
+from c3dpo_jax import losses, model, state
 
 # Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
 PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
@@ -114,6 +114,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.z_augment_rot_angle": ANGLE,
     "model.z_equivariance_rot_angle": ANGLE,
     "model.canonicalization_rot_angle": ANGLE,
+    "model.test_time_turns": POSITIVE_INT,
     "loss.huber_scaling": POSITIVE,
     "loss.reprojection_normalization": OneOf(losses.NORMALIZATIONS),
     "model.weight_init_std": NON_NEGATIVE,
@@ -165,6 +166,14 @@ def _cross_field(cfg: dict) -> list[str]:
         and not root < n
     ):
         problems.append(f"config.model.root_joint={root} (must be below model.n_keypoints={n})")
+    turns = get("model.test_time_turns")
+    if isinstance(turns, int) and turns > 1:  # the model's rule, as reconstruct asks it
+        problems.append(model.turns_problem(turns, get("model.projection_type"),
+                                            get("model.z_augment") is not False,
+                                            get("model.z_augment_rot_angle")))
+        if problems[-1]:
+            problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
+                            "the single pass)")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]

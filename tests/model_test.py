@@ -129,3 +129,55 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch")(
         batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
     assert seen == ["highest", "highest"]
+
+
+def _turned_numpy(cfg, variables, kp, vis, turns):
+    """Independent of ``model._turned_depth``: each view turned in numpy about its visible
+    centroid, one single-copy pass per angle, signs matched and the median taken in numpy."""
+    one = dataclasses.replace(cfg, test_time_turns=1)
+    k = (turns - 1) // 2
+    angles = [0.0] + [sign * cfg.z_augment_rot_angle * i / k for sign in (1, -1)
+                      for i in range(1, k + 1)]
+    kp, vis = np.asarray(kp, np.float64), np.asarray(vis, np.float64)
+    centre = (kp * vis[..., None]).sum(1, keepdims=True) / vis.sum(1)[:, None, None]
+    depths = []
+    for a in angles:
+        turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        turned = jnp.asarray((kp - centre) @ turn.T + centre, jnp.float32)
+        out = jax.vmap(partial(model.forward_eval, variables, cfg=one), in_axes=(0, 0, 0, None))(
+            turned, jnp.asarray(vis), jnp.ones(vis.shape), None)
+        depths.append(np.asarray(out["shape_camera"][..., 2], np.float64))
+    means = [(d * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True) for d in depths]
+    centred = np.array([d - m for d, m in zip(depths, means)])
+    agree = np.einsum("amn,mn->am", centred * vis, centred[0])
+    matched = np.where(agree[..., None] < 0, -centred, centred)
+    return np.median(matched, 0) + means[0], centred, agree
+
+
+def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
+    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
+    variables = model.init_variables(jax.random.key(4), cfg)
+    # Heads scaled up: a freshly initialised model barely depends on its input.
+    variables["params"] = jax.tree_util.tree_map_with_path(
+        lambda path, p: p * 1000.0 if any(
+            getattr(k, "key", "") in ("alpha_layer", "rot_layer") for k in path) else p,
+        variables["params"])
+    data, batch = _batch(seed=5)
+    fn = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg), in_axes=(0, 0, 0, None)))
+    turned = fn(batch["kp"], batch["vis"], batch["class_mask"], None)
+    want, copies, agree = _turned_numpy(cfg, variables, data.kp, data.vis, 5)
+    # The copies differ (so the median matters), some with the other depth sign.
+    assert np.abs(copies - copies[0]).max() > 0.3 * np.abs(copies).max()
+    assert np.any(agree < 0)
+    np.testing.assert_allclose(turned["shape_camera"][..., 2], want, atol=2e-4)
+    np.testing.assert_allclose(turned["shape_image_coord"][..., 2], want / cfg.keypoint_rescale,
+                               atol=2e-4)
+    # Only the depth changes: the image x, y, the reprojection and the camera are the view's.
+    single = jax.vmap(partial(model.forward_eval, variables,
+                              cfg=dataclasses.replace(cfg, test_time_turns=1)),
+                      in_axes=(0, 0, 0, None))(batch["kp"], batch["vis"], batch["class_mask"],
+                                               None)
+    for name in ("kp_reprojected", "rotation", "alpha", "shape_canonical", "dist_sq"):
+        np.testing.assert_allclose(turned[name], single[name], atol=1e-5, err_msg=name)
+    np.testing.assert_allclose(turned["shape_image_coord"][..., :2],
+                               single["shape_image_coord"][..., :2], atol=1e-5)

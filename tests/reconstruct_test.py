@@ -77,6 +77,27 @@ def test_invisible_coordinates_do_not_matter(params):
                                reconstruct(params, kp, vis).shape_canonical, atol=1e-5)
 
 
+def test_turns_override_the_models_own_setting_and_are_checked(params):
+    kp, vis = _inputs(4)
+    turned = dataclasses.replace(CFG, z_augment=True, test_time_turns=3)
+    own = reconstruct(C3DPOParams(params.variables, turned), kp, vis)
+    np.testing.assert_allclose(
+        own.shape_3d, _direct(C3DPOParams(params.variables, turned), kp, vis)["shape_image_coord"],
+        rtol=1e-5, atol=1e-4)
+    plain = C3DPOParams(params.variables, dataclasses.replace(CFG, z_augment=True))
+    np.testing.assert_allclose(reconstruct(plain, kp, vis, turns=3).shape_3d, own.shape_3d,
+                               rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(reconstruct(C3DPOParams(params.variables, turned), kp, vis,
+                                           turns=1).shape_3d,
+                               reconstruct(plain, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match=r"^turns=4 \(must be an odd number\)$"):
+        reconstruct(plain, kp, vis, turns=4)
+    with pytest.raises(ValueError, match=r"^turns=3 \(must be used with model.z_augment=True"):
+        reconstruct(params, kp, vis, turns=3)  # trained without in-plane augmentation
+    with pytest.raises(ValueError, match=r"^turns=0 "):
+        reconstruct(plain, kp, vis, turns=0)
+
+
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled
     p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)

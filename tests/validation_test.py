@@ -210,3 +210,21 @@ def test_schedule_and_ramp_rules():
         "config.loss.deformation_ramp=(3000, 5000) with config.loss.w_deformation_final=None")
     c.loss.w_deformation_final = 0.0
     assert validation.config_problems(c) == []
+
+
+def test_test_time_turns_rules():
+    c = default.get_config()
+    c.model.z_augment = True
+    c.model.test_time_turns = 5
+    assert validation.config_problems(c) == []
+    c.model.test_time_turns = 4
+    c.model.projection_type = "perspective"
+    (problem,) = validation.config_problems(c)
+    assert problem.startswith("config.model.test_time_turns=4 (must be an odd number and used "
+                              "with model.projection_type='orthographic' only")
+    c.model.test_time_turns, c.model.projection_type, c.model.z_augment = 3, "orthographic", False
+    (problem,) = validation.config_problems(c)
+    assert "model.z_augment=True" in problem
+    c.model.test_time_turns = 0
+    assert validation.config_problems(c) == [
+        f"config.model.test_time_turns=0 (must be {validation.POSITIVE_INT})"]
