@@ -22,8 +22,7 @@ in-plane by +-0.196 and +-0.3925 rad (the training augmentation's range), and ea
 depth is the median over the 5 copies (``model.test_time_turns``; an orthographic depth
 does not change under an in-plane turn, the regressed camera's errors do): up to 12% lower
 test error, and none higher, on the datasets of experiments/dev_suite for 5x the inference
-cost;
-``--config.model.test_time_turns=1`` gives the release's single pass.
+cost; ``--config.model.test_time_turns=1`` gives the release's single pass.
 """
 
 from configs import default
