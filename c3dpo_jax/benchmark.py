@@ -11,8 +11,9 @@ default; training runs 20-step chunks), eval samples/s (compiled ``make_eval_fn`
 config's ``model.test_time_turns`` passes per sample), the analytic dense-layer FLOPs of a
 step and the fraction of this machine's float32 matmul rate (``jnp.dot`` on the same shapes,
 measured in the same run) that the step achieves, and peak memory. Numbers are for
-reporting, never tests. With several devices (e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``)
-the train step is data parallel over all of them, as in ``train.train_and_evaluate``.
+reporting, never tests. With several devices
+(e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) the train step is data
+parallel over all of them, as in ``train.train_and_evaluate``.
 """
 
 import json
