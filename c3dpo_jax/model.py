@@ -354,14 +354,17 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
 
 def turns_problem(turns: int, projection_type: str, z_augment: bool,
                   z_augment_rot_angle: float) -> str:
-    """Why ``test_time_turns=turns`` cannot be used with these settings ('' if it can)."""
+    """Why ``test_time_turns=turns`` cannot be used with these settings ('' if it can; a
+    single pass always can)."""
+    if turns == 1:
+        return ""
     why = [
         "an odd number" if turns % 2 == 0 else "",
         "used with model.projection_type='orthographic' only"
         if projection_type == "perspective" else "",
         "used with model.z_augment=True and model.z_augment_rot_angle > 0 only (the copies "
         "are turned within the training augmentation's range)"
-        if turns > 1 and (not z_augment or z_augment_rot_angle == 0) else "",
+        if not z_augment or z_augment_rot_angle == 0 else "",
     ]
     return "must be " + " and ".join(w for w in why if w) if any(why) else ""
 

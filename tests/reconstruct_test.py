@@ -96,6 +96,11 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
         reconstruct(params, kp, vis, turns=3)  # trained without in-plane augmentation
     with pytest.raises(ValueError, match=r"^turns=0 "):
         reconstruct(plain, kp, vis, turns=0)
+    # One pass is always allowed, even where turning is not (a perspective model).
+    persp = C3DPOParams(params.variables, dataclasses.replace(CFG, projection_type="perspective"))
+    K = np.broadcast_to(np.eye(3, dtype=np.float32), (4, 3, 3))
+    np.testing.assert_allclose(reconstruct(persp, kp, vis, K=K, turns=1).shape_3d,
+                               reconstruct(persp, kp, vis, K=K).shape_3d)
 
 
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
