@@ -122,15 +122,16 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
 
 
 def _test_reconstruction(run: str):
-    """``(test split, the run's model's Reconstruction of it)`` for a suite run."""
+    """``(test split, the run's model, its Reconstruction of the split)`` for a suite run."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
-    return test, c3dpo_jax.reconstruct(c3dpo_jax.load(run), test.kp, test.vis)
+    model = c3dpo_jax.load(run)
+    return test, model, c3dpo_jax.reconstruct(model, test.kp, test.vis)
 
 
 def sign_agreement(run: str) -> float:
     """Fraction of the run's test views whose unflipped prediction is the better one."""
-    test, rec = _test_reconstruction(run)
+    test, _, rec = _test_reconstruction(run)
     per = evaluation.mpjpe(evaluation.center_depth(np.asarray(rec.shape_3d), test.vis),
                            evaluation.center_depth(test.kp3d, test.vis), test.vis)
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
@@ -141,29 +142,26 @@ def camera_refit(run: str) -> tuple[float, float]:
     the least 2D error (``baselines.fit_mean_shape`` with one shape per view: the rigid
     baseline's fit, the model's shapes instead of the training mean; its least-squares scale
     absorbs the canonical frame's units): how much the network's regressed camera costs."""
-    test, rec = _test_reconstruction(run)
+    test, _, rec = _test_reconstruction(run)
     refit = baselines.fit_mean_shape(rec.shape_canonical, test.kp, test.vis)
     return (evaluation.evaluate(rec.shape_3d, test)["mpjpe"],
             evaluation.evaluate(refit, test)["mpjpe"])
 
 
-def _turned_depths(model, kp: np.ndarray, vis: np.ndarray, angles):
-    """``(xy, depths)``: the image x, y of the model's reconstruction of the views ``kp``
-    (M, N, 2; hidden points reprojected), and (A, M, N) its depths for the views turned
-    in-plane by each angle about their visible centroid, mean depth removed, signs matched
-    to the first angle's."""
+def _turned_depths(model, kp: np.ndarray, vis: np.ndarray, angles) -> np.ndarray:
+    """(A, M, N) depths of the model for the views ``kp`` turned in-plane by each angle
+    about their visible centroid, mean depth removed, signs matched to the first angle's."""
     w = vis[..., None]
     centre = (kp * w).sum(1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1)
-    depths, xy = [], None
+    depths = []
     for a in angles:
         turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         rec = c3dpo_jax.reconstruct(model, ((kp - centre) @ turn.T + centre).astype(np.float32),
                                     vis)
         depth = np.asarray(rec.shape_3d[..., 2], np.float64)
-        xy = np.asarray(rec.shape_3d[..., :2], np.float64) if xy is None else xy
         depths.append(depth - (depth * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True))
     sign = np.sign(np.einsum("amn,mn->am", np.array(depths) * vis, depths[0]))
-    return xy, np.array(depths) * np.where(sign < 0, -1.0, 1.0)[..., None]
+    return np.array(depths) * np.where(sign < 0, -1.0, 1.0)[..., None]
 
 
 ROTATION_COPIES = (3, 5, 9)
@@ -174,22 +172,20 @@ def rotation_average(run: str) -> list[float]:
     """Test MPJPE of the model, then of the mean and the median depth over
     ``ROTATION_COPIES`` turned copies within the augmentation range, then over
     ``CIRCLE_COPIES`` copies around the full circle (mean, median)."""
-    test, _ = _test_reconstruction(run)
-    model = c3dpo_jax.load(run)
+    test, model, rec = _test_reconstruction(run)
     kp, vis = np.asarray(test.kp, np.float64), np.asarray(test.vis, np.float64)
     span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
-
-    xy, d = _turned_depths(model, kp, vis, [0.0])
+    xy = np.asarray(rec.shape_3d[..., :2], np.float64)  # hidden points reprojected
 
     def score(depth):
         return evaluation.evaluate(np.concatenate([xy, depth[..., None]], -1), test)["mpjpe"]
 
-    out = [score(d[0])]
+    out = [evaluation.evaluate(rec.shape_3d, test)["mpjpe"]]
     for m in ROTATION_COPIES:  # odd: the unturned copy first, then pairs +-a
         half = np.linspace(0.0, span, m // 2 + 1)[1:]
-        d = _turned_depths(model, kp, vis, [0.0, *half, *(-half)])[1]
+        d = _turned_depths(model, kp, vis, [0.0, *half, *(-half)])
         out += [score(d.mean(0)), score(np.median(d, 0))]
-    d = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(CIRCLE_COPIES) / CIRCLE_COPIES)[1]
+    d = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(CIRCLE_COPIES) / CIRCLE_COPIES)
     return out + [score(d.mean(0)), score(np.median(d, 0))]
 
 
