@@ -30,6 +30,12 @@ about its centroid (orthographic depth does not change under an in-plane turn), 
 depth sign first matched to the unturned copy's: M angles spread evenly over the training
 augmentation's range (+-``model.z_augment_rot_angle``), and over the full circle. Averaging
 works where the regressed camera's errors differ between copies.
+
+``selected --runs=DIR,DIR,...``: for trained runs, test MPJPE when the copies are M angles
+spread evenly round the full circle (the unturned view among them) and only the copies whose
+own mean 2D reprojection error (each against its turned input) is the lowest, or within
+``SELECT_TOLERANCE`` times the lowest, give the depth (their median): a choice made from the
+2D views alone.
 """
 
 import os
@@ -148,20 +154,25 @@ def camera_refit(run: str) -> tuple[float, float]:
             evaluation.evaluate(refit, test)["mpjpe"])
 
 
-def _turned_depths(model, kp: np.ndarray, vis: np.ndarray, angles) -> np.ndarray:
+def _turned_depths(model, kp: np.ndarray, vis: np.ndarray, angles, with_2d: bool = False):
     """(A, M, N) depths of the model for the views ``kp`` turned in-plane by each angle
-    about their visible centroid, mean depth removed, signs matched to the first angle's."""
+    about their visible centroid, mean depth removed, signs matched to the first angle's;
+    with ``with_2d``, also the (A, M) mean 2D distance of each copy's reprojection to its
+    turned input."""
     w = vis[..., None]
     centre = (kp * w).sum(1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1)
-    depths = []
+    depths, errs = [], []
     for a in angles:
         turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        rec = c3dpo_jax.reconstruct(model, ((kp - centre) @ turn.T + centre).astype(np.float32),
-                                    vis)
+        turned = ((kp - centre) @ turn.T + centre).astype(np.float32)
+        rec = c3dpo_jax.reconstruct(model, turned, vis, turns=1)
         depth = np.asarray(rec.shape_3d[..., 2], np.float64)
         depths.append(depth - (depth * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True))
+        dist = np.linalg.norm(np.asarray(rec.kp_reprojected, np.float64) - turned, axis=-1)
+        errs.append((dist * vis).sum(1) / vis.sum(1))
     sign = np.sign(np.einsum("amn,mn->am", np.array(depths) * vis, depths[0]))
-    return np.array(depths) * np.where(sign < 0, -1.0, 1.0)[..., None]
+    depths = np.array(depths) * np.where(sign < 0, -1.0, 1.0)[..., None]
+    return (depths, np.array(errs)) if with_2d else depths
 
 
 ROTATION_COPIES = (3, 5, 9)
@@ -189,6 +200,31 @@ def rotation_average(run: str) -> list[float]:
     return out + [score(d.mean(0)), score(np.median(d, 0))]
 
 
+SELECT_COPIES = (16, 32, 64)
+SELECT_TOLERANCE = 1.1
+
+
+def selected_average(run: str) -> list[float]:
+    """Test MPJPE of the model (with its ``test_time_turns``), then, for each of
+    ``SELECT_COPIES`` copies round the full circle, of the copy with the lowest 2D
+    reprojection error and of the median over the copies within ``SELECT_TOLERANCE`` times
+    that error."""
+    test, model, rec = _test_reconstruction(run)
+    kp, vis = np.asarray(test.kp, np.float64), np.asarray(test.vis, np.float64)
+    xy = np.asarray(rec.shape_3d[..., :2], np.float64)  # hidden points reprojected
+
+    def score(depth):
+        return evaluation.evaluate(np.concatenate([xy, depth[..., None]], -1), test)["mpjpe"]
+
+    out = [evaluation.evaluate(rec.shape_3d, test)["mpjpe"]]
+    for m in SELECT_COPIES:
+        d, err = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(m) / m, with_2d=True)
+        keep = err <= SELECT_TOLERANCE * err.min(0)
+        out += [score(d[np.argmin(err, 0), np.arange(d.shape[1])]),
+                score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))]
+    return out
+
+
 def _each_run(header: str, fn) -> None:
     """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
     print(header)
@@ -202,14 +238,22 @@ def _each_run(header: str, fn) -> None:
 
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
-    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations"):
+    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
+                                              "selected"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
-                             "| camera --runs=... | rotations --runs=...")
+                             "| camera --runs=... | rotations --runs=... | selected --runs=...")
     if argv[1] == "rotations":
         cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
         cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
         _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
                   + "---|" * len(cols), rotation_average)
+        return
+    if argv[1] == "selected":
+        cols = [
+            f"{m} round the circle, {k}" for m in SELECT_COPIES
+            for k in ("lowest 2D error", f"median within {SELECT_TOLERANCE}x")]
+        _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
+                  + "---|" * len(cols), selected_average)
         return
     if argv[1] == "camera":
         _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
