@@ -176,7 +176,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
            "jax_version": jax.__version__, "platform": platform.platform(),
            "load_avg_1m": os.getloadavg()[0],
            "matmul_precision": model_cfg.matmul_precision,
-           "test_time_turns": model_cfg.test_time_turns}
+           "test_time_turns": model_cfg.test_time_turns,
+           "test_time_turn_span": model_cfg.test_time_turn_span}
     res.update(_time_train(spec, data, steps, chunk_steps))
     variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
                                jax.devices()[0])
@@ -194,7 +195,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
 
 def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
-            "steps_per_s", "train_samples_per_s", "test_time_turns", "eval_samples_per_s",
+            "steps_per_s", "train_samples_per_s", "test_time_turns", "test_time_turn_span",
+            "eval_samples_per_s",
             "flops_per_step",
             "matmul_gflops", "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s",
             "peak_rss_mb", "load_avg_1m", "load_avg_1m_end"]

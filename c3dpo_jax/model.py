@@ -50,7 +50,7 @@ class Prediction(Mapping):
         divided by ``keypoint_rescale`` (calibrated units for perspective models).
       shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised; with
         ``test_time_turns`` > 1 its depth (and shape_image_coord's) is the median over
-        the turned copies, while X, R, theta and alpha are the unturned view's.
+        the turned copies kept, while X, R, theta and alpha are the unturned view's.
       shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
@@ -141,11 +141,16 @@ class ModelConfig:
     replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
     # Not in the release (which is 1): at inference, each view is also turned in-plane
-    # about its centre by angles spread evenly over +-z_augment_rot_angle (the training
-    # augmentation's range), and the depth of every point is the median over the copies
-    # (an orthographic depth does not change under an in-plane turn); odd, orthographic
-    # models trained with z_augment only (see ``forward_eval``).
+    # about its centre and the depth of every point is the median over copies (an
+    # orthographic depth does not change under an in-plane turn); orthographic models only
+    # (see ``forward_eval``). ``test_time_turn_span``: "augmentation", the copies spread
+    # evenly over +-z_augment_rot_angle (the training augmentation's range; odd turns,
+    # models trained with z_augment), all of them kept; "circle", spread evenly round the
+    # full circle, only the copies whose 2D reprojection error is within
+    # ``TURN_KEEP_RATIO`` of the lowest kept (a copy the network is lost on fits its own
+    # turned input badly).
     test_time_turns: int = 1
+    test_time_turn_span: str = "augmentation"  # "augmentation" | "circle"
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -352,48 +357,74 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
+TURN_SPANS = ("augmentation", "circle")
+# "circle": the copies kept are those whose mean 2D reprojection distance is at most this
+# times the lowest of the view's copies (experiments/dev_suite, "Turned copies round the
+# circle, chosen by their 2D fit").
+TURN_KEEP_RATIO = 1.1
+
+
 def turns_problem(turns: int, projection_type: str, z_augment: bool,
-                  z_augment_rot_angle: float) -> str:
+                  z_augment_rot_angle: float, span: str = "augmentation") -> str:
     """Why ``test_time_turns=turns`` cannot be used with these settings ('' if it can; a
-    single pass always can)."""
+    single pass always can). ``span`` is one of ``TURN_SPANS``."""
     if turns == 1:
         return ""
+    within = span == "augmentation"
     why = [
-        "an odd number" if turns % 2 == 0 else "",
+        "an odd number" if within and turns % 2 == 0 else "",
         "used with model.projection_type='orthographic' only"
         if projection_type == "perspective" else "",
         "used with model.z_augment=True and model.z_augment_rot_angle > 0 only (the copies "
-        "are turned within the training augmentation's range)"
-        if not z_augment or z_augment_rot_angle == 0 else "",
+        "are turned within the training augmentation's range; "
+        "model.test_time_turn_span='circle' is not)"
+        if within and (not z_augment or z_augment_rot_angle == 0) else "",
     ]
     return "must be " + " and ".join(w for w in why if w) if any(why) else ""
 
 
 def turn_angles(cfg: ModelConfig) -> Float[Array, " A"]:
     """The ``test_time_turns - 1`` nonzero in-plane angles of the turned copies: pairs
-    +-a spread evenly up to ``z_augment_rot_angle``."""
+    +-a spread evenly up to ``z_augment_rot_angle`` ("augmentation"), or steps of
+    2 pi / ``test_time_turns`` round the circle ("circle")."""
+    if cfg.test_time_turn_span == "circle":
+        return 2 * jnp.pi * jnp.arange(1, cfg.test_time_turns) / cfg.test_time_turns
     k = (cfg.test_time_turns - 1) // 2
     half = cfg.z_augment_rot_angle * jnp.arange(1, k + 1) / k
     return jnp.concatenate([half, -half])
 
 
-def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, depth):
-    """The median depth (N,) over the view and its copies turned in-plane by
-    ``turn_angles``: each copy's depth about its visible mean, its sign matched to the
-    unturned ``depth``'s, then the unturned mean depth added back."""
+def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_cam):
+    """The median depth (N,) over the view (camera-frame shape ``x_cam``) and its copies
+    turned in-plane by ``turn_angles``, each copy's depth about its visible mean with its
+    sign matched to the unturned view's ("circle": over the copies whose mean 2D
+    reprojection distance to their own turned input is within ``TURN_KEEP_RATIO`` of the
+    lowest), then the unturned mean depth added back."""
     w = vis / jnp.maximum(jnp.sum(vis), 1.0)
-    centred = depth - jnp.sum(w * depth)
+
+    def centred_depth_and_fit(x, kp_in):
+        _, depth, dist_sq = _reproject(cfg, x, kp_in, vis)
+        return depth - jnp.sum(w * depth), jnp.sum(w * jnp.sqrt(dist_sq))
+
+    centred, fit = centred_depth_and_fit(x_cam, kp_norm)
 
     def copy(angle):
         c, s = jnp.cos(angle), jnp.sin(angle)
-        out = net.apply(variables, kp_norm @ jnp.array([[c, s], [-s, c]]), vis, False,
-                        method="phi")
-        d = _camera(cfg, out, _shape(net, variables["params"], out["alpha"], class_mask))[0]
-        d = d[:, 2] - jnp.sum(w * d[:, 2])
-        return jnp.where(jnp.sum(w * d * centred) < 0, -d, d)
+        turned = kp_norm @ jnp.array([[c, s], [-s, c]])
+        out = net.apply(variables, turned, vis, False, method="phi")
+        x, t, _ = _camera(cfg, out, _shape(net, variables["params"], out["alpha"], class_mask))
+        d, f = centred_depth_and_fit(x + t[None], turned)
+        return jnp.where(jnp.sum(w * d * centred) < 0, -d, d), f
 
-    copies = jnp.concatenate([centred[None], jax.vmap(copy)(turn_angles(cfg))])
-    return jnp.median(copies, axis=0) + (depth - centred)
+    depths, fits = jax.vmap(copy)(turn_angles(cfg))
+    depths = jnp.concatenate([centred[None], depths])
+    if cfg.test_time_turn_span == "circle":
+        fits = jnp.concatenate([fit[None], fits])
+        keep = fits <= TURN_KEEP_RATIO * jnp.min(fits)
+        median = jnp.nanmedian(jnp.where(keep[:, None], depths, jnp.nan), axis=0)
+    else:
+        median = jnp.median(depths, axis=0)
+    return median + (x_cam[:, 2] - centred)
 
 
 @_under_precision
@@ -415,7 +446,7 @@ def forward_eval(
     x_cam = x_cam + t[None]
     if cfg.test_time_turns > 1:
         x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, net, variables, kp_norm, vis, class_mask,
-                                                 x_cam[:, 2]))
+                                                 x_cam))
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image

@@ -237,6 +237,7 @@ def reconstruct(
     K: ArrayLike | None = None,
     class_mask: ArrayLike | None = None,
     turns: int | None = None,
+    turn_span: str | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -247,22 +248,33 @@ def reconstruct(
       vis: (N,) or (B, N), 1 visible, 0 not; every sample needs a visible point.
       K: intrinsics (3, 3) or (B, 3, 3); required by perspective models only.
       class_mask: (N,) or (B, N) block of the sample's class (multi-class models).
-      turns: copies of each view turned in-plane whose median depth is kept (odd; 1: one
+      turns: copies of each view turned in-plane whose median depth is kept (1: one
         pass, as the release; None: the model's ``test_time_turns``, which the own-data
-        recipe sets to 5). See ``model.ModelConfig.test_time_turns``.
+        recipe sets). See ``model.ModelConfig.test_time_turns``.
+      turn_span: where the copies are turned: "augmentation" (within the training
+        augmentation's range, all kept; odd ``turns``) or "circle" (round the full circle,
+        those that fit their 2D input best kept); None: the model's
+        ``test_time_turn_span``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions.
     """
-    if turns is not None:
+    if turns is not None or turn_span is not None:
         cfg = params.config
+        if turns is None:
+            turns = cfg.test_time_turns
         if not isinstance(turns, int) or isinstance(turns, bool) or turns < 1:
             raise ValueError(f"turns={turns!r} (must be an integer >= 1, or None)")
+        span = cfg.test_time_turn_span if turn_span is None else turn_span
+        if span not in model.TURN_SPANS:
+            raise ValueError(f"turn_span={span!r} (must be one of {model.TURN_SPANS}, or None)")
         problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
-                                      cfg.z_augment_rot_angle)
+                                      cfg.z_augment_rot_angle, span)
         if problem:
-            raise ValueError(f"turns={turns} ({problem})")
-        params = params.replace(config=dataclasses.replace(cfg, test_time_turns=turns))
+            given = "" if turn_span is None else f" with turn_span={span!r}"
+            raise ValueError(f"turns={turns}{given} ({problem})")
+        params = params.replace(config=dataclasses.replace(
+            cfg, test_time_turns=turns, test_time_turn_span=span))
     single, kp, vis, K, class_mask = _check_inputs(params.config, kp, vis, K, class_mask)
     if class_mask is None:
         class_mask = np.ones_like(vis)

@@ -115,6 +115,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.z_equivariance_rot_angle": ANGLE,
     "model.canonicalization_rot_angle": ANGLE,
     "model.test_time_turns": POSITIVE_INT,
+    "model.test_time_turn_span": OneOf(model.TURN_SPANS),
     "loss.huber_scaling": POSITIVE,
     "loss.reprojection_normalization": OneOf(losses.NORMALIZATIONS),
     "model.weight_init_std": NON_NEGATIVE,
@@ -166,11 +167,12 @@ def _cross_field(cfg: dict) -> list[str]:
         and not root < n
     ):
         problems.append(f"config.model.root_joint={root} (must be below model.n_keypoints={n})")
-    turns = get("model.test_time_turns")
-    if isinstance(turns, int) and turns > 1:  # the model's rule, as reconstruct asks it
+    turns, span = get("model.test_time_turns"), get("model.test_time_turn_span")
+    span = "augmentation" if span is _MISSING else span
+    if isinstance(turns, int) and turns > 1 and span in model.TURN_SPANS:  # as reconstruct
         problems.append(model.turns_problem(turns, get("model.projection_type"),
                                             get("model.z_augment") is not False,
-                                            get("model.z_augment_rot_angle")))
+                                            get("model.z_augment_rot_angle"), span))
         if problems[-1]:
             problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
                             "the single pass)")

@@ -131,41 +131,56 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     assert seen == ["highest", "highest"]
 
 
-def _turned_numpy(cfg, variables, kp, vis, turns):
+def _turned_numpy(cfg, variables, kp, vis, turns, circle=False, keep_ratio=1.1):
     """Independent of ``model._turned_depth``: each view turned in numpy about its visible
-    centroid, one single-copy pass per angle, signs matched and the median taken in numpy."""
+    centroid, one single-copy pass per angle, signs matched and the median taken in numpy
+    ("circle": angles round the full circle, the median over the copies whose mean 2D
+    distance to their turned input is within ``keep_ratio`` of the view's lowest)."""
     one = dataclasses.replace(cfg, test_time_turns=1)
     k = (turns - 1) // 2
     angles = [0.0] + [sign * cfg.z_augment_rot_angle * i / k for sign in (1, -1)
                       for i in range(1, k + 1)]
+    if circle:
+        angles = [2 * np.pi * i / turns for i in range(turns)]
     kp, vis = np.asarray(kp, np.float64), np.asarray(vis, np.float64)
     centre = (kp * vis[..., None]).sum(1, keepdims=True) / vis.sum(1)[:, None, None]
-    depths = []
+    depths, fits = [], []
     for a in angles:
         turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        turned = jnp.asarray((kp - centre) @ turn.T + centre, jnp.float32)
+        turned = (kp - centre) @ turn.T + centre
         out = jax.vmap(partial(model.forward_eval, variables, cfg=one), in_axes=(0, 0, 0, None))(
-            turned, jnp.asarray(vis), jnp.ones(vis.shape), None)
+            jnp.asarray(turned, jnp.float32), jnp.asarray(vis), jnp.ones(vis.shape), None)
         depths.append(np.asarray(out["shape_camera"][..., 2], np.float64))
+        dist = np.linalg.norm(np.asarray(out["kp_reprojected"], np.float64) - turned, axis=-1)
+        fits.append((dist * vis).sum(1) / vis.sum(1))
     means = [(d * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True) for d in depths]
     centred = np.array([d - m for d, m in zip(depths, means)])
     agree = np.einsum("amn,mn->am", centred * vis, centred[0])
     matched = np.where(agree[..., None] < 0, -centred, centred)
-    return np.median(matched, 0) + means[0], centred, agree
+    keep = np.array(fits) <= keep_ratio * np.min(fits, 0)
+    if not circle:
+        keep[:] = True
+    median = np.nanmedian(np.where(keep[..., None], matched, np.nan), 0)
+    return median + means[0], centred, agree, keep
 
 
-def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
-    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
+def _input_dependent_variables(cfg):
+    """Heads scaled up: a freshly initialised model barely depends on its input."""
     variables = model.init_variables(jax.random.key(4), cfg)
-    # Heads scaled up: a freshly initialised model barely depends on its input.
     variables["params"] = jax.tree_util.tree_map_with_path(
         lambda path, p: p * 1000.0 if any(
             getattr(k, "key", "") in ("alpha_layer", "rot_layer") for k in path) else p,
         variables["params"])
+    return variables
+
+
+def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
+    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
+    variables = _input_dependent_variables(cfg)
     data, batch = _batch(seed=5)
     fn = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg), in_axes=(0, 0, 0, None)))
     turned = fn(batch["kp"], batch["vis"], batch["class_mask"], None)
-    want, copies, agree = _turned_numpy(cfg, variables, data.kp, data.vis, 5)
+    want, copies, agree, _ = _turned_numpy(cfg, variables, data.kp, data.vis, 5)
     # The copies differ (so the median matters), some with the other depth sign.
     assert np.abs(copies - copies[0]).max() > 0.3 * np.abs(copies).max()
     assert np.any(agree < 0)
@@ -181,3 +196,21 @@ def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
         np.testing.assert_allclose(turned[name], single[name], atol=1e-5, err_msg=name)
     np.testing.assert_allclose(turned["shape_image_coord"][..., :2],
                                single["shape_image_coord"][..., :2], atol=1e-5)
+
+
+def test_turns_round_the_circle_keep_the_copies_that_fit_their_2d_input_best():
+    # Even turns and no in-plane augmentation are fine round the circle.
+    cfg = dataclasses.replace(CFG, z_augment=False, test_time_turns=8,
+                              test_time_turn_span="circle")
+    variables = _input_dependent_variables(cfg)
+    data, batch = _batch(seed=6)
+    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
+                                                     batch["class_mask"], None)
+    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 8, circle=True)
+    # The choice matters: copies are left out, several are kept in some view, and the
+    # median of all the copies is another depth.
+    assert not keep.all() and keep.sum(0).max() > 1
+    every = _turned_numpy(cfg, variables, data.kp, data.vis, 8, circle=True, keep_ratio=np.inf)
+    assert np.abs(every[0] - want).max() > 1e-2
+    np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)

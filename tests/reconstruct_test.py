@@ -96,6 +96,22 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
         reconstruct(params, kp, vis, turns=3)  # trained without in-plane augmentation
     with pytest.raises(ValueError, match=r"^turns=0 "):
         reconstruct(plain, kp, vis, turns=0)
+    # Round the circle: no in-plane augmentation needed, any number of copies; the model's
+    # own span or the override give the same.
+    circle = C3DPOParams(params.variables, dataclasses.replace(
+        CFG, test_time_turns=4, test_time_turn_span="circle"))
+    np.testing.assert_allclose(
+        reconstruct(circle, kp, vis).shape_3d,
+        _direct(circle, kp, vis)["shape_image_coord"], rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(reconstruct(params, kp, vis, turns=4, turn_span="circle").shape_3d,
+                               reconstruct(circle, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(reconstruct(circle, kp, vis, turn_span="augmentation",
+                                           turns=1).shape_3d,
+                               reconstruct(params, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match=r"^turn_span='spiral' \(must be one of"):
+        reconstruct(circle, kp, vis, turn_span="spiral")
+    with pytest.raises(ValueError, match=r"^turns=4 with turn_span='augmentation' \(must be an "):
+        reconstruct(circle, kp, vis, turn_span="augmentation")
     # One pass is always allowed, even where turning is not (a perspective model).
     persp = C3DPOParams(params.variables, dataclasses.replace(CFG, projection_type="perspective"))
     K = np.broadcast_to(np.eye(3, dtype=np.float32), (4, 3, 3))

@@ -228,3 +228,9 @@ def test_test_time_turns_rules():
     c.model.test_time_turns = 0
     assert validation.config_problems(c) == [
         f"config.model.test_time_turns=0 (must be {validation.POSITIVE_INT})"]
+    # Round the circle: any number of copies, no in-plane augmentation needed.
+    c.model.test_time_turns, c.model.test_time_turn_span = 4, "circle"
+    assert validation.config_problems(c) == []
+    c.model.test_time_turn_span = "spiral"
+    assert validation.config_problems(c) == [
+        "config.model.test_time_turn_span='spiral' (must be one of 'augmentation', 'circle')"]
