@@ -179,24 +179,36 @@ ROTATION_COPIES = (3, 5, 9)
 CIRCLE_COPIES = 16
 
 
-def rotation_average(run: str) -> list[float]:
-    """Test MPJPE of the model, then of the mean and the median depth over
-    ``ROTATION_COPIES`` turned copies within the augmentation range, then over
-    ``CIRCLE_COPIES`` copies around the full circle (mean, median)."""
+def _circle(m: int) -> np.ndarray:
+    """``m`` angles spread evenly round the full circle, 0 first."""
+    return 2 * np.pi * np.arange(m) / m
+
+
+def _depth_scoring(run: str):
+    """``(model, kp, vis, its test MPJPE, score)`` for a suite run: ``score(depth)`` is the
+    test MPJPE of the model's x, y (hidden points reprojected) with ``depth`` (M, N)."""
     test, model, rec = _test_reconstruction(run)
     kp, vis = np.asarray(test.kp, np.float64), np.asarray(test.vis, np.float64)
-    span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
-    xy = np.asarray(rec.shape_3d[..., :2], np.float64)  # hidden points reprojected
+    xy = np.asarray(rec.shape_3d[..., :2], np.float64)
 
     def score(depth):
         return evaluation.evaluate(np.concatenate([xy, depth[..., None]], -1), test)["mpjpe"]
 
-    out = [evaluation.evaluate(rec.shape_3d, test)["mpjpe"]]
+    return model, kp, vis, evaluation.evaluate(rec.shape_3d, test)["mpjpe"], score
+
+
+def rotation_average(run: str) -> list[float]:
+    """Test MPJPE of the model, then of the mean and the median depth over
+    ``ROTATION_COPIES`` turned copies within the augmentation range, then over
+    ``CIRCLE_COPIES`` copies around the full circle (mean, median)."""
+    model, kp, vis, own, score = _depth_scoring(run)
+    span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
+    out = [own]
     for m in ROTATION_COPIES:  # odd: the unturned copy first, then pairs +-a
         half = np.linspace(0.0, span, m // 2 + 1)[1:]
         d = _turned_depths(model, kp, vis, [0.0, *half, *(-half)])
         out += [score(d.mean(0)), score(np.median(d, 0))]
-    d = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(CIRCLE_COPIES) / CIRCLE_COPIES)
+    d = _turned_depths(model, kp, vis, _circle(CIRCLE_COPIES))
     return out + [score(d.mean(0)), score(np.median(d, 0))]
 
 
@@ -209,16 +221,10 @@ def selected_average(run: str) -> list[float]:
     ``SELECT_COPIES`` copies round the full circle, of the copy with the lowest 2D
     reprojection error and of the median over the copies within ``SELECT_TOLERANCE`` times
     that error."""
-    test, model, rec = _test_reconstruction(run)
-    kp, vis = np.asarray(test.kp, np.float64), np.asarray(test.vis, np.float64)
-    xy = np.asarray(rec.shape_3d[..., :2], np.float64)  # hidden points reprojected
-
-    def score(depth):
-        return evaluation.evaluate(np.concatenate([xy, depth[..., None]], -1), test)["mpjpe"]
-
-    out = [evaluation.evaluate(rec.shape_3d, test)["mpjpe"]]
+    model, kp, vis, own, score = _depth_scoring(run)
+    out = [own]
     for m in SELECT_COPIES:
-        d, err = _turned_depths(model, kp, vis, 2 * np.pi * np.arange(m) / m, with_2d=True)
+        d, err = _turned_depths(model, kp, vis, _circle(m), with_2d=True)
         keep = err <= SELECT_TOLERANCE * err.min(0)
         out += [score(d[np.argmin(err, 0), np.arange(d.shape[1])]),
                 score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))]
