@@ -36,6 +36,11 @@ spread evenly round the full circle (the unturned view among them) and only the 
 own mean 2D reprojection error (each against its turned input) is the lowest, or within
 ``SELECT_TOLERANCE`` times the lowest, give the depth (their median): a choice made from the
 2D views alone.
+
+``union --runs=DIR,DIR,...``: for trained runs, test MPJPE of the median over 32 copies round
+the circle within ``SELECT_TOLERANCE`` times the lowest 2D error (as ``selected``), and of the
+median over those together with every copy within the augmentation's range, kept whatever
+their 2D error.
 """
 
 import os
@@ -231,6 +236,24 @@ def selected_average(run: str) -> list[float]:
     return out
 
 
+UNION_COPIES = 32
+
+
+def union_average(run: str) -> list[float]:
+    """Test MPJPE of the model (with its ``test_time_turns``), then, with ``UNION_COPIES``
+    copies round the full circle, of the median over the copies within ``SELECT_TOLERANCE``
+    times the lowest 2D reprojection error (``selected``), and of the median over those and
+    every copy within the augmentation's range (the in-range copies always kept)."""
+    model, kp, vis, own, score = _depth_scoring(run)
+    angles = _circle(UNION_COPIES)
+    span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
+    in_range = np.abs(np.angle(np.exp(1j * angles))) <= span + 1e-3  # the grid's +-22.5 deg
+    d, err = _turned_depths(model, kp, vis, angles, with_2d=True)
+    fit = err <= SELECT_TOLERANCE * err.min(0)
+    return [own] + [score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))
+                    for keep in (fit, fit | in_range[:, None])]
+
+
 def _each_run(header: str, fn) -> None:
     """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
     print(header)
@@ -245,9 +268,10 @@ def _each_run(header: str, fn) -> None:
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
-                                              "selected"):
+                                              "selected", "union"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
-                             "| camera --runs=... | rotations --runs=... | selected --runs=...")
+                             "| camera --runs=... | rotations --runs=... | selected --runs=... "
+                             "| union --runs=...")
     if argv[1] == "rotations":
         cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
         cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
@@ -260,6 +284,11 @@ def main(argv):
             for k in ("lowest 2D error", f"median within {SELECT_TOLERANCE}x")]
         _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
                   + "---|" * len(cols), selected_average)
+        return
+    if argv[1] == "union":
+        _each_run(f"| run | model | {UNION_COPIES} round the circle, median within "
+                  f"{SELECT_TOLERANCE}x | the same and every copy within range |\n"
+                  "|---|---|---|---|", union_average)
         return
     if argv[1] == "camera":
         _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
