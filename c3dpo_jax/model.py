@@ -148,9 +148,10 @@ class ModelConfig:
     # models trained with z_augment), all of them kept; "circle", spread evenly round the
     # full circle, only the copies whose 2D reprojection error is within
     # ``TURN_KEEP_RATIO`` of the lowest kept (a copy the network is lost on fits its own
-    # turned input badly).
+    # turned input badly); "circle_and_range", round the circle, the copies "circle" keeps
+    # and every copy within the augmentation's range (models trained with z_augment).
     test_time_turns: int = 1
-    test_time_turn_span: str = "augmentation"  # "augmentation" | "circle"
+    test_time_turn_span: str = "augmentation"  # "augmentation" | "circle" | "circle_and_range"
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -357,11 +358,15 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
-TURN_SPANS = ("augmentation", "circle")
+TURN_SPANS = ("augmentation", "circle", "circle_and_range")
 # "circle": the copies kept are those whose mean 2D reprojection distance is at most this
 # times the lowest of the view's copies (experiments/dev_suite, "Turned copies round the
 # circle, chosen by their 2D fit").
 TURN_KEEP_RATIO = 1.1
+# "circle_and_range": a copy counts as within the augmentation's range up to this many
+# radians beyond it (the circle's grid of 32 puts a copy at 2 pi / 16 = 0.39270 rad, the
+# release's range being 0.3925).
+TURN_RANGE_SLACK = 1e-3
 
 
 def turns_problem(turns: int, projection_type: str, z_augment: bool,
@@ -370,15 +375,15 @@ def turns_problem(turns: int, projection_type: str, z_augment: bool,
     single pass always can). ``span`` is one of ``TURN_SPANS``."""
     if turns == 1:
         return ""
-    within = span == "augmentation"
+    ranged = span != "circle"  # the training augmentation's range is used
     why = [
-        "an odd number" if within and turns % 2 == 0 else "",
+        "an odd number" if span == "augmentation" and turns % 2 == 0 else "",
         "used with model.projection_type='orthographic' only"
         if projection_type == "perspective" else "",
-        "used with model.z_augment=True and model.z_augment_rot_angle > 0 only (the copies "
-        "are turned within the training augmentation's range; "
-        "model.test_time_turn_span='circle' is not)"
-        if within and (not z_augment or z_augment_rot_angle == 0) else "",
+        f"used with model.z_augment=True and model.z_augment_rot_angle > 0 only (span "
+        f"{span!r} uses the training augmentation's range; model.test_time_turn_span="
+        "'circle' does not)"
+        if ranged and (not z_augment or z_augment_rot_angle == 0) else "",
     ]
     return "must be " + " and ".join(w for w in why if w) if any(why) else ""
 
@@ -386,8 +391,8 @@ def turns_problem(turns: int, projection_type: str, z_augment: bool,
 def turn_angles(cfg: ModelConfig) -> Float[Array, " A"]:
     """The ``test_time_turns - 1`` nonzero in-plane angles of the turned copies: pairs
     +-a spread evenly up to ``z_augment_rot_angle`` ("augmentation"), or steps of
-    2 pi / ``test_time_turns`` round the circle ("circle")."""
-    if cfg.test_time_turn_span == "circle":
+    2 pi / ``test_time_turns`` round the circle ("circle", "circle_and_range")."""
+    if cfg.test_time_turn_span != "augmentation":
         return 2 * jnp.pi * jnp.arange(1, cfg.test_time_turns) / cfg.test_time_turns
     k = (cfg.test_time_turns - 1) // 2
     half = cfg.z_augment_rot_angle * jnp.arange(1, k + 1) / k
@@ -399,7 +404,8 @@ def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_
     turned in-plane by ``turn_angles``, each copy's depth about its visible mean with its
     sign matched to the unturned view's ("circle": over the copies whose mean 2D
     reprojection distance to their own turned input is within ``TURN_KEEP_RATIO`` of the
-    lowest), then the unturned mean depth added back."""
+    lowest; "circle_and_range": those and every copy within ``z_augment_rot_angle`` (plus
+    ``TURN_RANGE_SLACK``) of the view), then the unturned mean depth added back."""
     w = vis / jnp.maximum(jnp.sum(vis), 1.0)
 
     def centred_depth_and_fit(x, kp_in):
@@ -416,11 +422,16 @@ def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_
         d, f = centred_depth_and_fit(x + t[None], turned)
         return jnp.where(jnp.sum(w * d * centred) < 0, -d, d), f
 
-    depths, fits = jax.vmap(copy)(turn_angles(cfg))
+    angles = turn_angles(cfg)
+    depths, fits = jax.vmap(copy)(angles)
     depths = jnp.concatenate([centred[None], depths])
-    if cfg.test_time_turn_span == "circle":
+    if cfg.test_time_turn_span != "augmentation":
         fits = jnp.concatenate([fit[None], fits])
         keep = fits <= TURN_KEEP_RATIO * jnp.min(fits)
+        if cfg.test_time_turn_span == "circle_and_range":
+            turned_by = jnp.concatenate([jnp.zeros(1), angles])
+            off = jnp.abs(jnp.remainder(turned_by + jnp.pi, 2 * jnp.pi) - jnp.pi)
+            keep = keep | (off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK)
         median = jnp.nanmedian(jnp.where(keep[:, None], depths, jnp.nan), axis=0)
     else:
         median = jnp.median(depths, axis=0)

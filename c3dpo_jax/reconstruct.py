@@ -252,9 +252,10 @@ def reconstruct(
         pass, as the release; None: the model's ``test_time_turns``, which the own-data
         recipe sets). See ``model.ModelConfig.test_time_turns``.
       turn_span: where the copies are turned: "augmentation" (within the training
-        augmentation's range, all kept; odd ``turns``) or "circle" (round the full circle,
-        those that fit their 2D input best kept); None: the model's
-        ``test_time_turn_span``.
+        augmentation's range, all kept; odd ``turns``), "circle" (round the full circle,
+        those that fit their 2D input best kept) or "circle_and_range" (round the circle,
+        those and every copy within the training augmentation's range kept); None: the
+        model's ``test_time_turn_span``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions.

@@ -131,16 +131,17 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     assert seen == ["highest", "highest"]
 
 
-def _turned_numpy(cfg, variables, kp, vis, turns, circle=False, keep_ratio=1.1):
+def _turned_numpy(cfg, variables, kp, vis, turns, span="augmentation", keep_ratio=1.1):
     """Independent of ``model._turned_depth``: each view turned in numpy about its visible
     centroid, one single-copy pass per angle, signs matched and the median taken in numpy
-    ("circle": angles round the full circle, the median over the copies whose mean 2D
-    distance to their turned input is within ``keep_ratio`` of the view's lowest)."""
+    over the copies kept: every one ("augmentation"), those whose mean 2D distance to their
+    turned input is within ``keep_ratio`` of the view's lowest ("circle"), or those and the
+    copies turned by at most ``z_augment_rot_angle`` ("circle_and_range")."""
     one = dataclasses.replace(cfg, test_time_turns=1)
     k = (turns - 1) // 2
     angles = [0.0] + [sign * cfg.z_augment_rot_angle * i / k for sign in (1, -1)
                       for i in range(1, k + 1)]
-    if circle:
+    if span != "augmentation":
         angles = [2 * np.pi * i / turns for i in range(turns)]
     kp, vis = np.asarray(kp, np.float64), np.asarray(vis, np.float64)
     centre = (kp * vis[..., None]).sum(1, keepdims=True) / vis.sum(1)[:, None, None]
@@ -157,9 +158,12 @@ def _turned_numpy(cfg, variables, kp, vis, turns, circle=False, keep_ratio=1.1):
     centred = np.array([d - m for d, m in zip(depths, means)])
     agree = np.einsum("amn,mn->am", centred * vis, centred[0])
     matched = np.where(agree[..., None] < 0, -centred, centred)
-    keep = np.array(fits) <= keep_ratio * np.min(fits, 0)
-    if not circle:
-        keep[:] = True
+    in_range = np.array([min(a, 2 * np.pi - a) <= cfg.z_augment_rot_angle + 1e-3
+                         for a in np.abs(angles)])
+    keep = {"augmentation": np.ones_like(agree, bool),
+            "circle": np.array(fits) <= keep_ratio * np.min(fits, 0),
+            "circle_and_range": (np.array(fits) <= keep_ratio * np.min(fits, 0))
+            | in_range[:, None]}[span]
     median = np.nanmedian(np.where(keep[..., None], matched, np.nan), 0)
     return median + means[0], centred, agree, keep
 
@@ -207,10 +211,31 @@ def test_turns_round_the_circle_keep_the_copies_that_fit_their_2d_input_best():
     out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
                            in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
                                                      batch["class_mask"], None)
-    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 8, circle=True)
+    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 8, span="circle")
     # The choice matters: copies are left out, several are kept in some view, and the
     # median of all the copies is another depth.
     assert not keep.all() and keep.sum(0).max() > 1
-    every = _turned_numpy(cfg, variables, data.kp, data.vis, 8, circle=True, keep_ratio=np.inf)
+    every = _turned_numpy(cfg, variables, data.kp, data.vis, 8, span="circle",
+                          keep_ratio=np.inf)
     assert np.abs(every[0] - want).max() > 1e-2
+    np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)
+
+
+def test_turns_round_the_circle_and_range_also_keep_every_copy_within_the_augmentation():
+    # 16 copies 22.5 degrees apart, range 0.4 rad: the unturned copy and +-22.5 degrees are
+    # always kept, beside the copies that fit their 2D input within 1.1x of the best.
+    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=16,
+                              test_time_turn_span="circle_and_range")
+    variables = _input_dependent_variables(cfg)
+    data, batch = _batch(seed=6)
+    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
+                                                     batch["class_mask"], None)
+    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
+                                     span="circle_and_range")
+    fit_only, _, _, fit_keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
+                                             span="circle")
+    # The in-range copies matter: "circle" leaves some of them out, and its depth differs.
+    assert keep[[0, 1, 15]].all() and not fit_keep[[0, 1, 15]].all()
+    assert not keep.all() and np.abs(fit_only - want).max() > 1e-2
     np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)

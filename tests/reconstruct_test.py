@@ -112,6 +112,10 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
         reconstruct(circle, kp, vis, turn_span="spiral")
     with pytest.raises(ValueError, match=r"^turns=4 with turn_span='augmentation' \(must be an "):
         reconstruct(circle, kp, vis, turn_span="augmentation")
+    # Round the circle and the range: the range is the training augmentation's.
+    with pytest.raises(ValueError, match=r"^turns=4 with turn_span='circle_and_range' \(must be "
+                       r"used with model.z_augment=True"):
+        reconstruct(circle, kp, vis, turn_span="circle_and_range")
     # One pass is always allowed, even where turning is not (a perspective model).
     persp = C3DPOParams(params.variables, dataclasses.replace(CFG, projection_type="perspective"))
     K = np.broadcast_to(np.eye(3, dtype=np.float32), (4, 3, 3))

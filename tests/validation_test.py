@@ -231,6 +231,13 @@ def test_test_time_turns_rules():
     # Round the circle: any number of copies, no in-plane augmentation needed.
     c.model.test_time_turns, c.model.test_time_turn_span = 4, "circle"
     assert validation.config_problems(c) == []
+    # Round the circle and the range: any number of copies, the augmentation's range.
+    c.model.test_time_turn_span = "circle_and_range"
+    (problem,) = validation.config_problems(c)
+    assert "model.z_augment=True" in problem
+    c.model.z_augment = True
+    assert validation.config_problems(c) == []
     c.model.test_time_turn_span = "spiral"
     assert validation.config_problems(c) == [
-        "config.model.test_time_turn_span='spiral' (must be one of 'augmentation', 'circle')"]
+        "config.model.test_time_turn_span='spiral' (must be one of 'augmentation', 'circle', "
+        "'circle_and_range')"]
