@@ -254,7 +254,8 @@ def union_average(run: str) -> list[float]:
     model, kp, vis, own, score = _depth_scoring(run)
     angles = _circle(UNION_COPIES)
     span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
-    in_range = np.abs(np.angle(np.exp(1j * angles))) <= span + 1e-3  # the grid's +-22.5 deg
+    in_range = (np.abs(np.angle(np.exp(1j * angles)))  # the grid's +-22.5 deg is in range
+                <= span + c3dpo_jax.model.TURN_RANGE_SLACK)
     d, err = _turned_depths(model, kp, vis, angles, with_2d=True)
     fit = err <= SELECT_TOLERANCE * err.min(0)
     return [own] + [score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))
