@@ -178,6 +178,17 @@ def _input_dependent_variables(cfg):
     return variables
 
 
+def _evaluated(cfg, seed):
+    """``(variables, data, out)``: input-dependent variables, a batch's data and the jitted
+    eval pass of ``cfg`` on the batch."""
+    variables = _input_dependent_variables(cfg)
+    data, batch = _batch(seed=seed)
+    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
+                                                     batch["class_mask"], None)
+    return variables, data, out
+
+
 def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
     cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
     variables = _input_dependent_variables(cfg)
@@ -206,11 +217,7 @@ def test_turns_round_the_circle_keep_the_copies_that_fit_their_2d_input_best():
     # Even turns and no in-plane augmentation are fine round the circle.
     cfg = dataclasses.replace(CFG, z_augment=False, test_time_turns=8,
                               test_time_turn_span="circle")
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=6)
-    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
-                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
-                                                     batch["class_mask"], None)
+    variables, data, out = _evaluated(cfg, seed=6)
     want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 8, span="circle")
     # The choice matters: copies are left out, several are kept in some view, and the
     # median of all the copies is another depth.
@@ -226,11 +233,7 @@ def test_turns_round_the_circle_and_range_also_keep_every_copy_within_the_augmen
     # always kept, beside the copies that fit their 2D input within 1.1x of the best.
     cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=16,
                               test_time_turn_span="circle_and_range")
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=6)
-    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
-                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
-                                                     batch["class_mask"], None)
+    variables, data, out = _evaluated(cfg, seed=6)
     want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
                                      span="circle_and_range")
     fit_only, _, _, fit_keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
