@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, so3
@@ -399,6 +400,15 @@ def turn_angles(cfg: ModelConfig) -> Float[Array, " A"]:
     return jnp.concatenate([half, -half])
 
 
+def turns_in_range(cfg: ModelConfig) -> np.ndarray:
+    """(``test_time_turns``,) bool, static: which copies of "circle_and_range" (the view
+    itself first, then ``turn_angles``) are turned by at most ``z_augment_rot_angle`` plus
+    ``TURN_RANGE_SLACK``, either way round."""
+    turned_by = 2 * np.pi * np.arange(cfg.test_time_turns) / cfg.test_time_turns
+    off = np.abs(np.remainder(turned_by + np.pi, 2 * np.pi) - np.pi)
+    return off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK
+
+
 def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_cam):
     """The median depth (N,) over the view (camera-frame shape ``x_cam``) and its copies
     turned in-plane by ``turn_angles``, each copy's depth about its visible mean with its
@@ -422,16 +432,13 @@ def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_
         d, f = centred_depth_and_fit(x + t[None], turned)
         return jnp.where(jnp.sum(w * d * centred) < 0, -d, d), f
 
-    angles = turn_angles(cfg)
-    depths, fits = jax.vmap(copy)(angles)
+    depths, fits = jax.vmap(copy)(turn_angles(cfg))
     depths = jnp.concatenate([centred[None], depths])
     if cfg.test_time_turn_span != "augmentation":
         fits = jnp.concatenate([fit[None], fits])
         keep = fits <= TURN_KEEP_RATIO * jnp.min(fits)
         if cfg.test_time_turn_span == "circle_and_range":
-            turned_by = jnp.concatenate([jnp.zeros(1), angles])
-            off = jnp.abs(jnp.remainder(turned_by + jnp.pi, 2 * jnp.pi) - jnp.pi)
-            keep = keep | (off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK)
+            keep = keep | turns_in_range(cfg)
         median = jnp.nanmedian(jnp.where(keep[:, None], depths, jnp.nan), axis=0)
     else:
         median = jnp.median(depths, axis=0)

@@ -47,6 +47,7 @@ median over those together with every copy within the augmentation's range, kept
 their 2D error.
 """
 
+import dataclasses
 import os
 import sys
 
@@ -252,11 +253,9 @@ def union_average(run: str) -> list[float]:
     times the lowest 2D reprojection error (``selected``), and of the median over those and
     every copy within the augmentation's range (the in-range copies always kept)."""
     model, kp, vis, own, score = _depth_scoring(run)
-    angles = _circle(UNION_COPIES)
-    span = model.config.z_augment_rot_angle if model.config.z_augment else 0.0
-    in_range = (np.abs(np.angle(np.exp(1j * angles)))  # the grid's +-22.5 deg is in range
-                <= span + c3dpo_jax.model.TURN_RANGE_SLACK)
-    d, err = _turned_depths(model, kp, vis, angles, with_2d=True)
+    in_range = c3dpo_jax.model.turns_in_range(dataclasses.replace(
+        model.config, test_time_turns=UNION_COPIES))  # the library's copies, the same grid
+    d, err = _turned_depths(model, kp, vis, _circle(UNION_COPIES), with_2d=True)
     fit = err <= SELECT_TOLERANCE * err.min(0)
     return [own] + [score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))
                     for keep in (fit, fit | in_range[:, None])]
