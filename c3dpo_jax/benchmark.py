@@ -8,7 +8,8 @@ Measures, on random device-resident data of the config's shapes and through the
 same ``make_train_chunk`` path as training: compile time, train steps/s and
 samples/s (median over calls after warm-up, of ``--chunk_steps`` steps each, 1 by
 default; training runs 20-step chunks), eval samples/s (compiled ``make_eval_fn``, with the
-config's ``model.test_time_turns`` passes per sample), the analytic dense-layer FLOPs of a
+config's ``model.test_time_turns`` passes per sample and its ``test_time_refine_iters``
+refinement steps), the analytic dense-layer FLOPs of a
 step and the fraction of this machine's float32 matmul rate (``jnp.dot`` on the same shapes,
 measured in the same run) that the step achieves, and peak memory. Numbers are for
 reporting, never tests. With several devices
@@ -177,7 +178,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
            "load_avg_1m": os.getloadavg()[0],
            "matmul_precision": model_cfg.matmul_precision,
            "test_time_turns": model_cfg.test_time_turns,
-           "test_time_turn_span": model_cfg.test_time_turn_span}
+           "test_time_turn_span": model_cfg.test_time_turn_span,
+           "test_time_refine_iters": model_cfg.test_time_refine_iters}
     res.update(_time_train(spec, data, steps, chunk_steps))
     variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
                                jax.devices()[0])
@@ -196,7 +198,7 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
 def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
             "steps_per_s", "train_samples_per_s", "test_time_turns", "test_time_turn_span",
-            "eval_samples_per_s",
+            "test_time_refine_iters", "eval_samples_per_s",
             "flops_per_step",
             "matmul_gflops", "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s",
             "peak_rss_mb", "load_avg_1m", "load_avg_1m_end"]

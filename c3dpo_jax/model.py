@@ -153,6 +153,13 @@ class ModelConfig:
     # and every copy within the augmentation's range (models trained with z_augment).
     test_time_turns: int = 1
     test_time_turn_span: str = "augmentation"  # "augmentation" | "circle" | "circle_and_range"
+    # Not in the release (which is 0): at inference, Phi's camera and coefficients are the
+    # start of ``test_time_refine_iters`` Levenberg-Marquardt steps on the view's mean
+    # squared 2D reprojection distance plus ``test_time_refine_prior`` times the mean
+    # squared distance of the canonical shape's points to Phi's (orthographic models only;
+    # every turned copy is refined; see ``refine_camera_and_shape``).
+    test_time_refine_iters: int = 0
+    test_time_refine_prior: float = 0.3
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -409,6 +416,68 @@ def turns_in_range(cfg: ModelConfig) -> np.ndarray:
     return off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK
 
 
+def refine_problem(iters: int, projection_type: str) -> str:
+    """Why ``test_time_refine_iters=iters`` cannot be used with this projection ('' if it
+    can; 0, no refinement, always can)."""
+    if iters > 0 and projection_type != "orthographic":
+        return "must be 0 (no refinement) for a perspective model: orthographic models only"
+    return ""
+
+
+# Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
+# cost (accepted) and after one that does not (rejected, the damping raised).
+REFINE_DAMPING, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP = 1e-3, 0.3, 10.0
+
+
+def refine_camera_and_shape(cfg: ModelConfig, net, params, phi_out, kp_norm, vis, class_mask):
+    """Phi's output ``phi_out`` with its ``theta`` and ``alpha`` refined for one view:
+    ``cfg.test_time_refine_iters`` Levenberg-Marquardt steps from Phi's values on the mean
+    squared 2D distance of the reprojected visible points to ``kp_norm`` plus
+    ``cfg.test_time_refine_prior`` times the mean squared distance of the canonical shape's
+    points (those of ``class_mask``) to Phi's canonical shape. Scale and translation stay
+    Phi's. A step that does not lower the cost is not taken (the damping rises instead), so
+    the cost never rises above Phi's."""
+    x_phi = _shape(net, params, phi_out["alpha"], class_mask)
+    w2d = jnp.sqrt(vis / jnp.maximum(jnp.sum(vis), 1.0))[:, None]
+    w3d = jnp.sqrt(cfg.test_time_refine_prior * class_mask
+                   / jnp.maximum(jnp.sum(class_mask), 1.0))[:, None]
+
+    def residuals(p):
+        out = dict(phi_out, theta=p[:3], alpha=p[3:])
+        x_canon = _shape(net, params, out["alpha"], class_mask)
+        x_cam, t, _ = _camera(cfg, out, x_canon)
+        proj, _, _ = _reproject(cfg, x_cam + t[None], kp_norm, vis)
+        return jnp.concatenate([((proj - kp_norm) * w2d).ravel(),
+                                ((x_canon - x_phi) * w3d).ravel()])
+
+    def cost(p):
+        return jnp.sum(residuals(p) ** 2)
+
+    def step(carry, _):
+        p, damping = carry
+        r, jac = residuals(p), jax.jacfwd(residuals)(p)
+        normal = jac.T @ jac
+        delta = jnp.linalg.solve(normal + damping * jnp.diag(jnp.diag(normal) + 1e-9),
+                                 -jac.T @ r)
+        lower = cost(p + delta) < cost(p)  # False for a NaN step: it is not taken
+        return (jnp.where(lower, p + delta, p),
+                damping * jnp.where(lower, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP)), None
+
+    start = jnp.concatenate([phi_out["theta"], phi_out["alpha"]])
+    (p, _), _ = jax.lax.scan(step, (start, jnp.asarray(REFINE_DAMPING)), None,
+                             length=cfg.test_time_refine_iters)
+    return dict(phi_out, theta=p[:3], alpha=p[3:])
+
+
+def _phi_eval(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask):
+    """Phi's eval-mode output for one view, refined when ``test_time_refine_iters`` > 0."""
+    out = net.apply(variables, kp_norm, vis, False, method="phi")
+    if cfg.test_time_refine_iters > 0:
+        out = refine_camera_and_shape(cfg, net, variables["params"], out, kp_norm, vis,
+                                      class_mask)
+    return out
+
+
 def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_cam):
     """The median depth (N,) over the view (camera-frame shape ``x_cam``) and its copies
     turned in-plane by ``turn_angles``, each copy's depth about its visible mean with its
@@ -427,7 +496,7 @@ def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_
     def copy(angle):
         c, s = jnp.cos(angle), jnp.sin(angle)
         turned = kp_norm @ jnp.array([[c, s], [-s, c]])
-        out = net.apply(variables, turned, vis, False, method="phi")
+        out = _phi_eval(cfg, net, variables, turned, vis, class_mask)
         x, t, _ = _camera(cfg, out, _shape(net, variables["params"], out["alpha"], class_mask))
         d, f = centred_depth_and_fit(x + t[None], turned)
         return jnp.where(jnp.sum(w * d * centred) < 0, -d, d), f
@@ -458,7 +527,7 @@ def forward_eval(
     the fields of the ``Prediction`` are documented there."""
     net = make_network(cfg)
     kp_cal, kp_norm, centre = _normalised_input(cfg, kp, vis, intrinsics)
-    phi_out = net.apply(variables, kp_norm, vis, False, method="phi")
+    phi_out = _phi_eval(cfg, net, variables, kp_norm, vis, class_mask)
     x_canon = _shape(net, variables["params"], phi_out["alpha"], class_mask)
     x_cam, t, rot = _camera(cfg, phi_out, x_canon)
     x_cam = x_cam + t[None]

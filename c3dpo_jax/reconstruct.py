@@ -238,6 +238,7 @@ def reconstruct(
     class_mask: ArrayLike | None = None,
     turns: int | None = None,
     turn_span: str | None = None,
+    refine_iters: int | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -256,6 +257,10 @@ def reconstruct(
         those that fit their 2D input best kept) or "circle_and_range" (round the circle,
         those and every copy within the training augmentation's range kept); None: the
         model's ``test_time_turn_span``.
+      refine_iters: Levenberg-Marquardt steps that refine Phi's camera and coefficients
+        for each view (and each turned copy) at inference (0: Phi's output, as the release;
+        None: the model's ``test_time_refine_iters``, which the own-data recipe sets);
+        orthographic models only. See ``model.refine_camera_and_shape``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions.
@@ -276,6 +281,14 @@ def reconstruct(
             raise ValueError(f"turns={turns}{given} ({problem})")
         params = params.replace(config=dataclasses.replace(
             cfg, test_time_turns=turns, test_time_turn_span=span))
+    if refine_iters is not None:
+        if not isinstance(refine_iters, int) or isinstance(refine_iters, bool) or refine_iters < 0:
+            raise ValueError(f"refine_iters={refine_iters!r} (must be an integer >= 0, or None)")
+        problem = model.refine_problem(refine_iters, params.config.projection_type)
+        if problem:
+            raise ValueError(f"refine_iters={refine_iters} ({problem})")
+        params = params.replace(config=dataclasses.replace(
+            params.config, test_time_refine_iters=refine_iters))
     single, kp, vis, K, class_mask = _check_inputs(params.config, kp, vis, K, class_mask)
     if class_mask is None:
         class_mask = np.ones_like(vis)

@@ -116,6 +116,8 @@ RULES: dict[str, Range | OneOf] = {
     "model.canonicalization_rot_angle": ANGLE,
     "model.test_time_turns": POSITIVE_INT,
     "model.test_time_turn_span": OneOf(model.TURN_SPANS),
+    "model.test_time_refine_iters": COUNT,
+    "model.test_time_refine_prior": NON_NEGATIVE,
     "loss.huber_scaling": POSITIVE,
     "loss.reprojection_normalization": OneOf(losses.NORMALIZATIONS),
     "model.weight_init_std": NON_NEGATIVE,
@@ -176,6 +178,12 @@ def _cross_field(cfg: dict) -> list[str]:
         if problems[-1]:
             problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
                             "the single pass)")
+    iters = get("model.test_time_refine_iters")
+    projection = get("model.projection_type")
+    if isinstance(iters, int) and isinstance(projection, str):
+        problem = model.refine_problem(iters, projection)
+        problems.append(f"config.model.test_time_refine_iters={iters} ({problem})"
+                        if problem else "")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]

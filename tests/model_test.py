@@ -242,3 +242,118 @@ def test_turns_round_the_circle_and_range_also_keep_every_copy_within_the_augmen
     assert keep[[0, 1, 15]].all() and not fit_keep[[0, 1, 15]].all()
     assert not keep.all() and np.abs(fit_only - want).max() > 1e-2
     np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)
+
+
+
+def _canonical_numpy(variables, alpha):
+    """The canonical shape (N, 3) of coefficients ``alpha``, from the shape layer's arrays."""
+    layer = variables["params"]["shape_layer"]
+    flat = np.asarray(layer["bias"], np.float64) + np.asarray(alpha, np.float64) @ np.asarray(
+        layer["kernel"], np.float64)
+    return flat.reshape(3, -1).T
+
+
+def _refinement_residuals_numpy(variables, kp_norm, vis, alpha_phi, prior, p):
+    """Independent of ``model.refine_camera_and_shape``: for one view, the residuals whose
+    squares sum to the refinement's cost at ``p = (theta, alpha)``, in numpy and scipy: the
+    visible points' 2D distances (orthographic, shifted by the least-squares translation),
+    weighted to a mean, and the canonical points' distances to Phi's shape, weighted to
+    ``prior`` times a mean."""
+    from scipy.spatial.transform import Rotation
+
+    kp, vis = np.asarray(kp_norm, np.float64), np.asarray(vis, np.float64)
+    shape = _canonical_numpy(variables, p[3:])
+    proj = (shape @ Rotation.from_rotvec(p[:3]).as_matrix().T)[:, :2]
+    proj = proj + ((kp - proj) * vis[:, None]).sum(0) / vis.sum()  # argmin_translation
+    fit = (proj - kp) * np.sqrt(vis / vis.sum())[:, None]
+    shift = (shape - _canonical_numpy(variables, alpha_phi)) * np.sqrt(prior / len(vis))
+    return np.concatenate([fit.ravel(), shift.ravel()])
+
+
+def _basis_views(cfg, n=4, seed=0):
+    """``(variables, kp, vis)``: a freshly initialised model (Phi's outputs near 0) whose
+    shape layer is a synthetic shape model (mean and D modes), and ``n`` views of shapes of
+    that model under rotations of up to 0.6 rad about any axis, a quarter of the points
+    hidden."""
+    mean, modes = synthetic.shape_model(cfg.n_keypoints, cfg.shape_basis_size, 0.3, seed=0)
+    variables = model.init_variables(jax.random.key(1), cfg)
+    variables["params"]["shape_layer"] = {
+        "bias": jnp.asarray(mean.T.reshape(-1)),
+        "kernel": jnp.asarray(modes.transpose(0, 2, 1).reshape(len(modes), -1))}
+    rng = np.random.default_rng(seed)
+    from scipy.spatial.transform import Rotation
+
+    rots = Rotation.from_rotvec(rng.normal(size=(n, 3)) * 0.35).as_matrix()
+    shapes = mean + np.einsum("bd,dnc->bnc", rng.normal(size=(n, len(modes))), modes)
+    kp = np.einsum("bij,bnj->bni", rots, shapes)[..., :2] + rng.normal(size=(n, 1, 2))
+    vis = (rng.uniform(size=(n, cfg.n_keypoints)) > 0.25).astype(np.float32)
+    vis[:, :4] = 1.0
+    return variables, jnp.asarray(kp, jnp.float32), jnp.asarray(vis)
+
+
+def _eval(cfg, variables, kp, vis):
+    return jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+                            in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
+
+
+def test_refinement_reaches_the_minimum_scipy_finds_from_phi_s_output():
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    cfg = dataclasses.replace(CFG, test_time_refine_iters=20, test_time_refine_prior=0.3)
+    variables, kp, vis = _basis_views(cfg)
+    phi = _eval(dataclasses.replace(cfg, test_time_refine_iters=0), variables, kp, vis)
+    out = _eval(cfg, variables, kp, vis)
+    for i in range(len(kp)):
+        def residuals(p, i=i):
+            return _refinement_residuals_numpy(variables, phi["kp_norm"][i], vis[i],
+                                               phi["alpha"][i], 0.3, p)
+
+        def cost(p):
+            return np.sum(residuals(p) ** 2)
+
+        start = np.concatenate([phi["theta"][i], phi["alpha"][i]]).astype(np.float64)
+        best = least_squares(residuals, start, method="lm").x
+        got = np.concatenate([out["theta"][i], out["alpha"][i]]).astype(np.float64)
+        assert cost(got) < 0.5 * cost(start)  # Phi's camera was far off: the fit moved
+        np.testing.assert_allclose(cost(got), cost(best), rtol=1e-3, atol=1e-7)
+        # The reconstruction is the refined camera's and shape's.
+        shape = _canonical_numpy(variables, got[3:])
+        np.testing.assert_allclose(out["shape_canonical"][i], shape, atol=1e-4)
+        depth = (shape @ Rotation.from_rotvec(got[:3]).as_matrix().T)[:, 2]
+        np.testing.assert_allclose(out["shape_camera"][i, :, 2], depth, atol=1e-4)
+
+
+def test_refinement_recovers_the_camera_of_a_view_of_the_model_s_own_shape():
+    # Phi says "no rotation" for every view; the views are its mean shape under other
+    # rotations. With the shape exact, the refined camera is the true one, and so the depth.
+    from scipy.spatial.transform import Rotation
+
+    cfg = dataclasses.replace(CFG, z_equivariance=False, z_augment=False,
+                              test_time_refine_iters=30)
+    shape = synthetic.shape_model(8, 2, 0.3, seed=0)[0]
+    shape = shape - shape.mean(0)
+    variables = _perfect_variables(cfg, shape)
+    truth = Rotation.from_rotvec([[0.4, -0.2, 0.1], [-0.3, 0.0, 0.35], [0.1, 0.4, -0.2]])
+    cams = np.einsum("bij,nj->bni", truth.as_matrix(), shape)
+    vis = np.ones((3, 8), np.float32)
+    out = jax.vmap(partial(model.forward_eval, variables, cfg=cfg), in_axes=(0, 0, 0, None))(
+        jnp.asarray(cams[..., :2] + 2.0, jnp.float32), jnp.asarray(vis), jnp.ones((3, 8)), None)
+    np.testing.assert_allclose(out["rotation"], truth.as_matrix(), atol=1e-4)
+    depth = out["shape_camera"][..., 2] - np.mean(out["shape_camera"][..., 2], 1, keepdims=True)
+    np.testing.assert_allclose(depth, cams[..., 2] - cams[..., 2].mean(1, keepdims=True),
+                               atol=1e-4)
+
+
+def test_every_turned_copy_is_refined():
+    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5,
+                              test_time_refine_iters=20)
+    variables, kp, vis = _basis_views(cfg, n=6, seed=2)
+    rot = variables["params"]["rot_layer"]  # Phi's camera depends on the turned input
+    variables["params"]["rot_layer"] = dict(rot, kernel=rot["kernel"] * 30.0)
+    want, _, _, _ = _turned_numpy(cfg, variables, kp, vis, 5)  # each copy refined
+    unrefined, _, _, _ = _turned_numpy(dataclasses.replace(cfg, test_time_refine_iters=0),
+                                       variables, kp, vis, 5)
+    assert np.abs(unrefined - want).max() > 1e-2
+    np.testing.assert_allclose(_eval(cfg, variables, kp, vis)["shape_camera"][..., 2], want,
+                               atol=2e-4)

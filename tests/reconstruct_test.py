@@ -12,6 +12,7 @@ import pytest
 
 import c3dpo_jax
 from c3dpo_jax import checkpoint, model
+from c3dpo_jax.data import synthetic
 from c3dpo_jax.reconstruct import (
     C3DPOParams,
     Reconstruction,
@@ -122,6 +123,34 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
     np.testing.assert_allclose(reconstruct(persp, kp, vis, K=K, turns=1).shape_3d,
                                reconstruct(persp, kp, vis, K=K).shape_3d)
 
+
+
+def test_refinement_override_the_models_own_setting_and_is_checked(params):
+    kp, vis = _inputs(4)
+    kp = (kp - 200.0) / 50.0  # the training data's units
+    # A shape layer of unit-sized shapes and modes: a well-posed fit.
+    mean, modes = synthetic.shape_model(7, 3, 0.3, seed=0)
+    variables = dict(params.variables, params=dict(params.variables["params"], shape_layer={
+        "bias": jnp.asarray(mean.T.reshape(-1)),
+        "kernel": jnp.asarray(modes.transpose(0, 2, 1).reshape(3, -1))}))
+    params = C3DPOParams(variables, CFG)
+    refined = C3DPOParams(variables, dataclasses.replace(CFG, test_time_refine_iters=5))
+    own = reconstruct(refined, kp, vis)
+    np.testing.assert_allclose(own.shape_3d, _direct(refined, kp, vis)["shape_image_coord"],
+                               rtol=1e-5, atol=1e-4)
+    assert np.abs(own.shape_3d - reconstruct(params, kp, vis).shape_3d).max() > 1e-3
+    np.testing.assert_allclose(reconstruct(params, kp, vis, refine_iters=5).shape_3d,
+                               own.shape_3d, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(reconstruct(refined, kp, vis, refine_iters=0).shape_3d,
+                               reconstruct(params, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
+    for bad in (-1, True):
+        with pytest.raises(ValueError, match=rf"^refine_iters={bad!r} \(must be an integer"):
+            reconstruct(params, kp, vis, refine_iters=bad)
+    persp = C3DPOParams(params.variables, dataclasses.replace(CFG, projection_type="perspective"))
+    K = np.broadcast_to(np.eye(3, dtype=np.float32), (4, 3, 3))
+    with pytest.raises(ValueError, match=r"^refine_iters=3 \(must be 0 \(no refinement\) for "
+                       r"a perspective model"):
+        reconstruct(persp, kp, vis, K=K, refine_iters=3)
 
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled

@@ -241,3 +241,19 @@ def test_test_time_turns_rules():
     assert validation.config_problems(c) == [
         "config.model.test_time_turn_span='spiral' (must be one of 'augmentation', 'circle', "
         "'circle_and_range')"]
+
+
+def test_test_time_refinement_rules():
+    c = default.get_config()
+    c.model.test_time_refine_iters = 20
+    assert validation.config_problems(c) == []
+    c.model.projection_type = "perspective"
+    assert validation.config_problems(c) == [
+        "config.model.test_time_refine_iters=20 (must be 0 (no refinement) for a perspective "
+        "model: orthographic models only)"]
+    c.model.test_time_refine_iters = 0  # the release's perspective models are untouched
+    assert validation.config_problems(c) == []
+    c.model.test_time_refine_iters, c.model.test_time_refine_prior = -1, -0.5
+    assert validation.config_problems(c) == [
+        f"config.model.test_time_refine_iters=-1 (must be {validation.COUNT})",
+        f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})"]
