@@ -55,7 +55,8 @@ class Prediction(Mapping):
       shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
-      alpha: (D,) shape-basis coefficients.
+      alpha: (D,) shape-basis coefficients (theta and alpha Phi's, refined with
+        ``test_time_refine_iters`` > 0).
       translation: (3,) camera translation (zeros + ``depth_offset`` unless predicted).
       scale: () camera scale (1 unless ``camera_scale``).
       kp_reprojected: (N, 2) shape_camera projected back to input coordinates (pixels

@@ -45,6 +45,12 @@ own mean 2D reprojection error (each against its turned input) is the lowest, or
 the circle within ``SELECT_TOLERANCE`` times the lowest 2D error (as ``selected``), and of the
 median over those together with every copy within the augmentation's range, kept whatever
 their 2D error.
+
+``refine --runs=DIR,DIR,... [--priors=0.3,1,3]``: for trained runs, test MPJPE with one pass
+(Phi's output), with ``union32`` (the 32 turned copies, ``union`` above) and with each view
+refined at test time (``model.test_time_refine_iters=20``, one pass) under each prior weight,
+last ``union32`` with every copy refined under the first prior: the library's path
+(``reconstruct`` with the run's config changed).
 """
 
 import dataclasses
@@ -68,6 +74,7 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's results/runs/...)")
 flags.DEFINE_integer("n_basis", 10, "floors: size of the PCA basis")
 flags.DEFINE_list("runs", [], "signs: workdirs of trained runs")
+flags.DEFINE_list("priors", ["0.3", "1", "3"], "refine: the prior weights scored")
 
 
 def _rotate_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -261,6 +268,29 @@ def union_average(run: str) -> list[float]:
                     for keep in (fit, fit | in_range[:, None])]
 
 
+REFINE_ITERS = 20
+
+
+def refined(run: str) -> list[float]:
+    """Test MPJPE of the run's checkpoint with one pass, with ``union32`` and refined at test
+    time (``REFINE_ITERS`` steps, one pass) with each of ``--priors``: the library's path."""
+    test, model, _ = _test_reconstruction(run)
+
+    def score(**settings) -> float:
+        params = model.replace(config=dataclasses.replace(model.config, **settings))
+        return evaluation.evaluate(c3dpo_jax.reconstruct(params, test.kp, test.vis).shape_3d,
+                                   test)["mpjpe"]
+
+    none = {"test_time_refine_iters": 0}
+    return ([score(test_time_turns=1, **none),
+             score(test_time_turns=UNION_COPIES, test_time_turn_span="circle_and_range", **none)]
+            + [score(test_time_turns=1, test_time_refine_iters=REFINE_ITERS,
+                     test_time_refine_prior=float(w)) for w in FLAGS.priors]
+            + [score(test_time_turns=UNION_COPIES, test_time_turn_span="circle_and_range",
+                     test_time_refine_iters=REFINE_ITERS,
+                     test_time_refine_prior=float(FLAGS.priors[0]))])
+
+
 def _each_run(header: str, fn) -> None:
     """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
     print(header)
@@ -275,10 +305,10 @@ def _each_run(header: str, fn) -> None:
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
-                                              "selected", "union"):
+                                              "selected", "union", "refine"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
                              "| camera --runs=... | rotations --runs=... | selected --runs=... "
-                             "| union --runs=...")
+                             "| union --runs=... | refine --runs=... [--priors=...]")
     if argv[1] == "rotations":
         cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
         cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
@@ -296,6 +326,12 @@ def main(argv):
         _each_run(f"| run | model | {UNION_COPIES} round the circle, median within "
                   f"{SELECT_TOLERANCE}x | the same and every copy within range |\n"
                   "|---|---|---|---|", union_average)
+        return
+    if argv[1] == "refine":
+        cols = [f"refined, prior {w}" for w in FLAGS.priors]
+        cols.append(f"union32, every copy refined, prior {FLAGS.priors[0]}")
+        _each_run(f"| run | one pass | {UNION_COPIES} turned copies (union32) | "
+                  + " | ".join(cols) + " |\n|---|---|---|" + "---|" * len(cols), refined)
         return
     if argv[1] == "camera":
         _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
