@@ -55,8 +55,8 @@ class Prediction(Mapping):
       shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
-      alpha: (D,) shape-basis coefficients (theta and alpha Phi's, refined with
-        ``test_time_refine_iters`` > 0).
+      alpha: (D,) shape-basis coefficients (with ``test_time_refine_iters`` > 0, theta
+        and alpha are Phi's refined; see ``refine_camera_and_shape``).
       translation: (3,) camera translation (zeros + ``depth_offset`` unless predicted).
       scale: () camera scale (1 unless ``camera_scale``).
       kp_reprojected: (N, 2) shape_camera projected back to input coordinates (pixels
@@ -451,16 +451,16 @@ def refine_camera_and_shape(cfg: ModelConfig, net, params, phi_out, kp_norm, vis
         return jnp.concatenate([((proj - kp_norm) * w2d).ravel(),
                                 ((x_canon - x_phi) * w3d).ravel()])
 
-    def cost(p):
-        return jnp.sum(residuals(p) ** 2)
-
     def step(carry, _):
         p, damping = carry
         r, jac = residuals(p), jax.jacfwd(residuals)(p)
         normal = jac.T @ jac
+        # Marquardt's scaling, floored so that a direction the cost does not see (a hidden
+        # view's rotation, an unused basis vector) still gets a damped, finite step.
         delta = jnp.linalg.solve(normal + damping * jnp.diag(jnp.diag(normal) + 1e-9),
                                  -jac.T @ r)
-        lower = cost(p + delta) < cost(p)  # False for a NaN step: it is not taken
+        # False for a NaN step: it is not taken.
+        lower = jnp.sum(residuals(p + delta) ** 2) < jnp.sum(r**2)
         return (jnp.where(lower, p + delta, p),
                 damping * jnp.where(lower, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP)), None
 
