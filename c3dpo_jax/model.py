@@ -453,7 +453,8 @@ def refine_camera_and_shape(cfg: ModelConfig, net, params, phi_out, kp_norm, vis
 
     def step(carry, _):
         p, damping = carry
-        r, jac = residuals(p), jax.jacfwd(residuals)(p)
+        # One pass gives the residuals and their Jacobian (the residuals as jacfwd's aux).
+        jac, r = jax.jacfwd(lambda q: (lambda v: (v, v))(residuals(q)), has_aux=True)(p)
         normal = jac.T @ jac
         # Marquardt's scaling, floored so that a direction the cost does not see (a hidden
         # view's rotation, an unused basis vector) still gets a damped, finite step.

@@ -183,10 +183,13 @@ def _evaluated(cfg, seed):
     eval pass of ``cfg`` on the batch."""
     variables = _input_dependent_variables(cfg)
     data, batch = _batch(seed=seed)
-    out = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
-                           in_axes=(0, 0, 0, None)))(batch["kp"], batch["vis"],
-                                                     batch["class_mask"], None)
-    return variables, data, out
+    return variables, data, _eval(cfg, variables, batch["kp"], batch["vis"])
+
+
+def _eval(cfg, variables, kp, vis):
+    """The jitted eval pass of ``cfg`` on a batch (every point in the class)."""
+    return jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+                            in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
 
 
 def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
@@ -244,7 +247,6 @@ def test_turns_round_the_circle_and_range_also_keep_every_copy_within_the_augmen
     np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)
 
 
-
 def _canonical_numpy(variables, alpha):
     """The canonical shape (N, 3) of coefficients ``alpha``, from the shape layer's arrays."""
     layer = variables["params"]["shape_layer"]
@@ -273,8 +275,8 @@ def _refinement_residuals_numpy(variables, kp_norm, vis, alpha_phi, prior, p):
 def _basis_views(cfg, n=4, seed=0):
     """``(variables, kp, vis)``: a freshly initialised model (Phi's outputs near 0) whose
     shape layer is a synthetic shape model (mean and D modes), and ``n`` views of shapes of
-    that model under rotations of up to 0.6 rad about any axis, a quarter of the points
-    hidden."""
+    that model under rotations whose axis-angle components have std 0.35 rad, a quarter of
+    the points hidden."""
     mean, modes = synthetic.shape_model(cfg.n_keypoints, cfg.shape_basis_size, 0.3, seed=0)
     variables = model.init_variables(jax.random.key(1), cfg)
     variables["params"]["shape_layer"] = {
@@ -289,11 +291,6 @@ def _basis_views(cfg, n=4, seed=0):
     vis = (rng.uniform(size=(n, cfg.n_keypoints)) > 0.25).astype(np.float32)
     vis[:, :4] = 1.0
     return variables, jnp.asarray(kp, jnp.float32), jnp.asarray(vis)
-
-
-def _eval(cfg, variables, kp, vis):
-    return jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
-                            in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
 
 
 def test_refinement_reaches_the_minimum_scipy_finds_from_phi_s_output():
@@ -336,9 +333,8 @@ def test_refinement_recovers_the_camera_of_a_view_of_the_model_s_own_shape():
     variables = _perfect_variables(cfg, shape)
     truth = Rotation.from_rotvec([[0.4, -0.2, 0.1], [-0.3, 0.0, 0.35], [0.1, 0.4, -0.2]])
     cams = np.einsum("bij,nj->bni", truth.as_matrix(), shape)
-    vis = np.ones((3, 8), np.float32)
-    out = jax.vmap(partial(model.forward_eval, variables, cfg=cfg), in_axes=(0, 0, 0, None))(
-        jnp.asarray(cams[..., :2] + 2.0, jnp.float32), jnp.asarray(vis), jnp.ones((3, 8)), None)
+    out = _eval(cfg, variables, jnp.asarray(cams[..., :2] + 2.0, jnp.float32),
+                jnp.ones((3, 8)))
     np.testing.assert_allclose(out["rotation"], truth.as_matrix(), atol=1e-4)
     depth = out["shape_camera"][..., 2] - np.mean(out["shape_camera"][..., 2], 1, keepdims=True)
     np.testing.assert_allclose(depth, cams[..., 2] - cams[..., 2].mean(1, keepdims=True),

@@ -147,11 +147,16 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
     return rows
 
 
-def _test_reconstruction(run: str):
-    """``(test split, the run's model, its Reconstruction of the split)`` for a suite run."""
+def _test_split_and_model(run: str):
+    """``(test split, the run's model)`` for a suite run."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
-    model = c3dpo_jax.load(run)
+    return test, c3dpo_jax.load(run)
+
+
+def _test_reconstruction(run: str):
+    """``(test split, the run's model, its Reconstruction of the split)`` for a suite run."""
+    test, model = _test_split_and_model(run)
     return test, model, c3dpo_jax.reconstruct(model, test.kp, test.vis)
 
 
@@ -274,7 +279,7 @@ REFINE_ITERS = 20
 def refined(run: str) -> list[float]:
     """Test MPJPE of the run's checkpoint with one pass, with ``union32`` and refined at test
     time (``REFINE_ITERS`` steps, one pass) with each of ``--priors``: the library's path."""
-    test, model, _ = _test_reconstruction(run)
+    test, model = _test_split_and_model(run)
 
     def score(**settings) -> float:
         params = model.replace(config=dataclasses.replace(model.config, **settings))
