@@ -51,6 +51,23 @@ their 2D error.
 refined at test time (``model.test_time_refine_iters=20``, one pass) under each prior weight,
 last ``union32`` with every copy refined under the first prior: the library's path
 (``reconstruct`` with the run's config changed).
+
+``spread --runs=DIR,DIR,...``: for trained runs, on the test views, how much the model's
+canonical shapes deform against the truth's: the RMS distance of the shapes (each centred,
+scaled to unit RMS size and rotated onto their Procrustes mean) to that mean, for the model
+and for the 3D truth, and the spread (std) of the model's centred depths over the truth's
+(1: depth neither flattened nor stretched).
+
+``objective --runs=DIR,DIR,...``: for trained runs, on up to 2,000 training views, does the
+training objective prefer the truth? The mean 3D and 2D distances of the truth's own linear
+model (a PCA basis of ``--n_basis`` vectors of the aligned training shapes, fitted to each
+view's 3D truth under its best rotation) against C3DPO's (3D: the test protocol's MPJPE; 2D:
+its reprojection to the input points). A C3DPO fit as close in 2D as the truth's model and
+far from it in 3D is a factorisation the reprojection loss cannot tell from the truth.
+
+``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
+then that of the mean of the runs' predictions, each view's depth sign matched to the first
+run's: whether their errors are independent (the mean is better) or shared (it is not).
 """
 
 import dataclasses
@@ -72,8 +89,8 @@ from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's results/runs/...)")
-flags.DEFINE_integer("n_basis", 10, "floors: size of the PCA basis")
-flags.DEFINE_list("runs", [], "signs: workdirs of trained runs")
+flags.DEFINE_integer("n_basis", 10, "floors, objective: size of the PCA basis")
+flags.DEFINE_list("runs", [], "workdirs of trained runs (every subcommand but floors and clips)")
 flags.DEFINE_list("priors", ["0.3", "1", "3"], "refine: the prior weights scored")
 
 
@@ -92,28 +109,66 @@ def _centred(x) -> np.ndarray:
     return x - x.mean(1, keepdims=True)
 
 
+def oracle_basis_fit(train_kp3d: np.ndarray, shapes: np.ndarray, n_basis: int,
+                     n_iters: int = 5) -> np.ndarray:
+    """(M, N, 3): the best fit to each of ``shapes`` (M, N, 3; centred) of a PCA basis of
+    ``n_basis`` vectors of the aligned, centred ``train_kp3d``, under its best rotation,
+    in the frame of ``shapes`` (alternately the best shape in the span and the best
+    rotation, ``n_iters`` + 1 times, from the rotation onto the Procrustes mean)."""
+    mean = _centred(baselines.procrustes_mean_shape(train_kp3d)[None])[0]
+    aligned = _rotate_onto(_centred(train_kp3d), mean).reshape(len(train_kp3d), -1)
+    mu = aligned.mean(0)
+    basis = np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
+    x = _rotate_onto(shapes, mean)
+    for _ in range(n_iters + 1):
+        fit = ((x.reshape(len(x), -1) - mu) @ basis.T @ basis + mu).reshape(x.shape)
+        x = _rotate_onto(x, fit)
+    return _rotate_onto(fit, shapes)
+
+
+def deformation_spread(shapes: np.ndarray, n_iters: int = 5) -> float:
+    """RMS distance of ``shapes`` (M, N, 3), each centred, scaled to unit RMS size and
+    rotated, or mirrored and rotated, whichever is nearer, onto their mean, to that mean
+    (alternately aligning and averaging, ``n_iters`` times from the first shape): 0 for
+    rotated or mirrored copies of one shape, so that a model's mixed handedness does not
+    count as deformation."""
+    x = _centred(shapes)
+    x = x / np.sqrt((x**2).sum((1, 2), keepdims=True) / x.shape[1])
+    mirror = x * np.array([1.0, 1.0, -1.0])
+    mean = x[0]
+    for _ in range(n_iters):
+        a, b = _rotate_onto(x, mean), _rotate_onto(mirror, mean)
+        nearer = (((b - mean) ** 2).sum((1, 2)) < ((a - mean) ** 2).sum((1, 2)))
+        aligned = np.where(nearer[:, None, None], b, a)
+        mean = aligned.mean(0)
+        mean = mean / np.sqrt((mean**2).sum() / len(mean))
+    return float(np.sqrt(((aligned - aligned.mean(0)) ** 2).sum(-1).mean()))
+
+
+def sign_aligned_mean(preds: np.ndarray) -> np.ndarray:
+    """The mean over ``preds`` (R, M, N, 3; centred depths) with each view's depth sign
+    matched to ``preds[0]``'s (the flip nearer to it, by mean point distance)."""
+    ref, out = preds[0], [preds[0]]
+    for p in preds[1:]:
+        flipped = p * np.array([1.0, 1.0, -1.0])
+        nearer = (np.linalg.norm(flipped - ref, axis=-1).mean(-1)
+                  < np.linalg.norm(p - ref, axis=-1).mean(-1))
+        out.append(np.where(nearer[:, None, None], flipped, p))
+    return np.mean(out, axis=0)
+
+
 def floors(name: str, data_dir: str, n_basis: int) -> dict:
     train = json_dataset.load(os.path.join(data_dir, f"{name}_train.json"))
     test = json_dataset.load(os.path.join(data_dir, f"{name}_test.json"))
     mean = _centred(baselines.procrustes_mean_shape(train.kp3d)[None])[0]
-    aligned = _rotate_onto(_centred(train.kp3d), mean).reshape(len(train), -1)
-    mu = aligned.mean(0)
-    basis = np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
     truth = _centred(test.kp3d)
-
-    def oracle_fit(n_iters: int) -> float:
-        x = _rotate_onto(truth, mean)
-        for _ in range(n_iters + 1):  # alternate: best shape in the span, best rotation
-            fit = ((x.reshape(len(x), -1) - mu) @ basis.T @ basis + mu).reshape(x.shape)
-            x = _rotate_onto(x, fit)
-        return float(np.linalg.norm(fit - x, axis=-1).mean())
-
     rigid = np.linalg.norm(_rotate_onto(truth, mean) - mean, axis=-1).mean()
     scale, rows, centred, kp_mean = baselines.fit_camera(mean, test.kp, test.vis)
     dist = np.linalg.norm(baselines.project(scale, rows, centred, kp_mean) - test.kp, axis=-1)
     ppca = baselines.pca_shape_basis(train.kp3d, n_basis)
     return {"rigid mean shape, oracle rotation": float(rigid),
-            f"PCA basis D={n_basis}, oracle fit": oracle_fit(5),
+            f"PCA basis D={n_basis}, oracle fit": float(np.linalg.norm(
+                oracle_basis_fit(train.kp3d, truth, n_basis) - truth, axis=-1).mean()),
             "rigid baseline, mean 2D distance": float((dist * test.vis).sum() / test.vis.sum()),
             f"PCA basis D={n_basis}, fitted to the 2D views": evaluation.evaluate(
                 baselines.fit_shape_basis(ppca, test.kp, test.vis), test)["mpjpe"]}
@@ -296,6 +351,50 @@ def refined(run: str) -> list[float]:
                      test_time_refine_prior=float(FLAGS.priors[0]))])
 
 
+def spread(run: str) -> list[float]:
+    """The model's and the truth's ``deformation_spread`` on the test views, and the std of
+    the model's centred depths over the truth's."""
+    test, _, rec = _test_reconstruction(run)
+    depth = evaluation.center_depth(np.asarray(rec.shape_3d, np.float64), test.vis)[..., 2]
+    truth = evaluation.center_depth(test.kp3d.astype(np.float64), test.vis)[..., 2]
+    return [deformation_spread(np.asarray(rec.shape_canonical, np.float64)),
+            deformation_spread(test.kp3d), float(depth.std() / truth.std())]
+
+
+OBJECTIVE_VIEWS = 2000
+
+
+def objective(run: str) -> list[float]:
+    """On up to ``OBJECTIVE_VIEWS`` training views: the truth's PCA model's 3D and 2D mean
+    distances (``oracle_basis_fit``), C3DPO's MPJPE and mean 2D reprojection distance."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
+    rng = np.random.default_rng(0)
+    views = train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS]))
+    truth = _centred(views.kp3d)
+    fit = oracle_basis_fit(train.kp3d, truth, FLAGS.n_basis)
+    rec = c3dpo_jax.reconstruct(c3dpo_jax.load(run), views.kp, views.vis)
+    w = views.vis / views.vis.sum()
+    return [float(np.linalg.norm(fit - truth, axis=-1).mean()),
+            float(np.linalg.norm(fit[..., :2] - truth[..., :2], axis=-1).mean()),
+            evaluation.evaluate(rec.shape_3d, views)["mpjpe"],
+            float((w * np.linalg.norm(np.asarray(rec.kp_reprojected) - views.kp, axis=-1)).sum())]
+
+
+def ensemble() -> list[float]:
+    """Each ``--runs`` entry's test MPJPE, then that of ``sign_aligned_mean`` of them all."""
+    names = {os.path.basename(os.path.normpath(r)).split("__")[0] for r in FLAGS.runs}
+    if len(names) != 1:
+        raise app.UsageError(f"ensemble needs runs of one dataset, got {sorted(names)}")
+    test = _test_split_and_model(FLAGS.runs[0])[0]
+    preds = np.stack([
+        evaluation.center_depth(np.asarray(c3dpo_jax.reconstruct(
+            c3dpo_jax.load(r), test.kp, test.vis).shape_3d, np.float64), test.vis)
+        for r in FLAGS.runs])
+    return ([evaluation.evaluate(p, test)["mpjpe"] for p in preds]
+            + [evaluation.evaluate(sign_aligned_mean(preds), test)["mpjpe"]])
+
+
 def _each_run(header: str, fn) -> None:
     """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
     print(header)
@@ -310,10 +409,12 @@ def _each_run(header: str, fn) -> None:
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
-                                              "selected", "union", "refine"):
+                                              "selected", "union", "refine", "spread",
+                                              "objective", "ensemble"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
                              "| camera --runs=... | rotations --runs=... | selected --runs=... "
-                             "| union --runs=... | refine --runs=... [--priors=...]")
+                             "| union --runs=... | refine --runs=... [--priors=...] "
+                             "| spread --runs=... | objective --runs=... | ensemble --runs=...")
     if argv[1] == "rotations":
         cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
         cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
@@ -337,6 +438,21 @@ def main(argv):
         cols.append(f"union32, every copy refined, prior {FLAGS.priors[0]}")
         _each_run(f"| run | one pass | {UNION_COPIES} turned copies (union32) | "
                   + " | ".join(cols) + " |\n|---|---|---|" + "---|" * len(cols), refined)
+        return
+    if argv[1] == "spread":
+        _each_run("| run | model's canonical spread | truth's spread | depth std, model / truth "
+                  "|\n|---|---|---|---|", spread)
+        return
+    if argv[1] == "objective":
+        _each_run(f"| run | truth's PCA D={FLAGS.n_basis}, 3D | its 2D | C3DPO, 3D | C3DPO, 2D "
+                  "|\n|---|---|---|---|---|", objective)
+        return
+    if argv[1] == "ensemble":
+        values = ensemble()
+        print("| " + " | ".join([os.path.relpath(r, FLAGS.out) for r in FLAGS.runs]
+                                + ["mean of all, signs matched"]) + " |")
+        print("|" + "---|" * len(values))
+        print("| " + " | ".join(f"{v:.4f}" for v in values) + " |")
         return
     if argv[1] == "camera":
         _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
