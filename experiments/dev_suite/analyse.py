@@ -63,7 +63,8 @@ training objective prefer the truth? The mean 3D and 2D distances of the truth's
 model (a PCA basis of ``--n_basis`` vectors of the aligned training shapes, fitted to each
 view's 3D truth under its best rotation) against C3DPO's (3D: the test protocol's MPJPE; 2D:
 its reprojection to the input points). A C3DPO fit as close in 2D as the truth's model and
-far from it in 3D is a factorisation the reprojection loss cannot tell from the truth.
+far from it in 3D is a factorisation the reprojection loss cannot tell from the truth. C3DPO's
+numbers are Phi's own output (one pass, no refinement), what the training loss sees.
 
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
@@ -366,14 +367,18 @@ OBJECTIVE_VIEWS = 2000
 
 def objective(run: str) -> list[float]:
     """On up to ``OBJECTIVE_VIEWS`` training views: the truth's PCA model's 3D and 2D mean
-    distances (``oracle_basis_fit``), C3DPO's MPJPE and mean 2D reprojection distance."""
+    distances (``oracle_basis_fit``), Phi's (one pass) MPJPE and mean 2D reprojection
+    distance."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
     rng = np.random.default_rng(0)
     views = train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS]))
     truth = _centred(views.kp3d)
     fit = oracle_basis_fit(train.kp3d, truth, FLAGS.n_basis)
-    rec = c3dpo_jax.reconstruct(c3dpo_jax.load(run), views.kp, views.vis)
+    model = c3dpo_jax.load(run)  # Phi's own output, as the training loss sees it
+    model = model.replace(config=dataclasses.replace(
+        model.config, test_time_turns=1, test_time_refine_iters=0))
+    rec = c3dpo_jax.reconstruct(model, views.kp, views.vis)
     w = views.vis / views.vis.sum()
     return [float(np.linalg.norm(fit - truth, axis=-1).mean()),
             float(np.linalg.norm(fit[..., :2] - truth[..., :2], axis=-1).mean()),
