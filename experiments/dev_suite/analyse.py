@@ -54,7 +54,7 @@ last ``union32`` with every copy refined under the first prior: the library's pa
 
 ``spread --runs=DIR,DIR,...``: for trained runs, on the test views, how much the model's
 canonical shapes deform against the truth's: the RMS distance of the shapes (each centred,
-scaled to unit RMS size and rotated onto their Procrustes mean) to that mean, for the model
+scaled to unit RMS size, rotated or mirrored onto their mean) to that mean, for the model
 and for the 3D truth, and the spread (std) of the model's centred depths over the truth's
 (1: depth neither flattened nor stretched).
 
@@ -64,7 +64,8 @@ model (a PCA basis of ``--n_basis`` vectors of the aligned training shapes, fitt
 view's 3D truth under its best rotation) against C3DPO's (3D: the test protocol's MPJPE; 2D:
 its reprojection to the input points). A C3DPO fit as close in 2D as the truth's model and
 far from it in 3D is a factorisation the reprojection loss cannot tell from the truth. C3DPO's
-numbers are Phi's own output (one pass, no refinement), what the training loss sees.
+numbers are Phi's own output (one pass, no refinement), what the training loss sees, then
+those of the run's own inference (the default's: refined).
 
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
@@ -367,23 +368,25 @@ OBJECTIVE_VIEWS = 2000
 
 def objective(run: str) -> list[float]:
     """On up to ``OBJECTIVE_VIEWS`` training views: the truth's PCA model's 3D and 2D mean
-    distances (``oracle_basis_fit``), Phi's (one pass) MPJPE and mean 2D reprojection
-    distance."""
+    distances (``oracle_basis_fit``), then the MPJPE and the mean 2D reprojection distance
+    of Phi's output (one pass) and of the run's own inference."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
     rng = np.random.default_rng(0)
     views = train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS]))
     truth = _centred(views.kp3d)
     fit = oracle_basis_fit(train.kp3d, truth, FLAGS.n_basis)
-    model = c3dpo_jax.load(run)  # Phi's own output, as the training loss sees it
-    model = model.replace(config=dataclasses.replace(
+    model = c3dpo_jax.load(run)
+    one_pass = model.replace(config=dataclasses.replace(
         model.config, test_time_turns=1, test_time_refine_iters=0))
-    rec = c3dpo_jax.reconstruct(model, views.kp, views.vis)
     w = views.vis / views.vis.sum()
-    return [float(np.linalg.norm(fit - truth, axis=-1).mean()),
-            float(np.linalg.norm(fit[..., :2] - truth[..., :2], axis=-1).mean()),
-            evaluation.evaluate(rec.shape_3d, views)["mpjpe"],
-            float((w * np.linalg.norm(np.asarray(rec.kp_reprojected) - views.kp, axis=-1)).sum())]
+    out = [float(np.linalg.norm(fit - truth, axis=-1).mean()),
+           float(np.linalg.norm(fit[..., :2] - truth[..., :2], axis=-1).mean())]
+    for m in (one_pass, model):
+        rec = c3dpo_jax.reconstruct(m, views.kp, views.vis)
+        out += [evaluation.evaluate(rec.shape_3d, views)["mpjpe"], float(
+            (w * np.linalg.norm(np.asarray(rec.kp_reprojected) - views.kp, axis=-1)).sum())]
+    return out
 
 
 def ensemble() -> list[float]:
@@ -449,8 +452,8 @@ def main(argv):
                   "|\n|---|---|---|---|", spread)
         return
     if argv[1] == "objective":
-        _each_run(f"| run | truth's PCA D={FLAGS.n_basis}, 3D | its 2D | C3DPO, 3D | C3DPO, 2D "
-                  "|\n|---|---|---|---|---|", objective)
+        _each_run(f"| run | truth's PCA D={FLAGS.n_basis}, 3D | its 2D | Phi, 3D | Phi, 2D | "
+                  "the run's inference, 3D | its 2D |\n|---|---|---|---|---|---|---|", objective)
         return
     if argv[1] == "ensemble":
         values = ensemble()
