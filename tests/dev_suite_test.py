@@ -70,6 +70,13 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     again = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path),
                            env=smoke_subprocess_env())
     assert "[core" not in again.stdout
+    # A run of the variant's name made from another config is neither reused nor resumed.
+    other = [c if not c.startswith("--variant=") else "--variant=lr:optim.lr=0.002" for c in cmd]
+    refused = subprocess.run(other, capture_output=True, text=True, cwd=str(tmp_path),
+                             env=smoke_subprocess_env())
+    assert refused.returncode != 0 and "[core" not in refused.stdout
+    assert "runs/lr/cmu131__s0 was made with another config" in refused.stderr
+    assert "optim.lr: 0.001, not 0.002" in refused.stderr
 
 
 def test_floors_are_zero_where_the_model_class_holds_the_truth(tmp_path):

@@ -28,7 +28,10 @@ A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
 ``OUT/runs/VARIANT/DATASET__sSEED`` (a finished run is not run again; an unfinished one
 resumes), ``--jobs`` of them at a time, each pinned to one core, in the order seed, dataset,
-variant (the order of the flags). The table of the datasets
+variant (the order of the flags); a run whose saved config differs from the one the suite
+would make now (``--config`` and the variant's overrides: an older variant of the same name,
+or one made before the base config changed) stops the suite with a message instead of being
+reused or resumed. The table of the datasets
 and seeds asked for is printed; ``OUT/VARIANT.md`` gets the table of every finished run of the
 variant. It gives per dataset the mean (and spread) over seeds of: the rigid
 baseline (the training mean shape, best rigid fit to each view) and zero depth; C3DPO after
@@ -41,8 +44,11 @@ point of the evaluation curve; the worst seed's final / best ratio (1.0:
 no degradation) and the worst seed's baseline / final ratio (> 1: better than the baseline).
 """
 
+import ast
 import glob
+import importlib.util
 import json
+import math
 import os
 import re
 import sys
@@ -100,6 +106,73 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
         if "=" not in item:
             raise app.UsageError(f"variant {name!r}: {item!r} is not KEY=VALUE")
     return name, overrides
+
+
+def _literal(text: str):
+    """An override's value as the CLI reads it: a Python literal, else the string."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def _same(saved, asked) -> bool:
+    """Whether a value of a run's config.json (JSON: tuples as lists) is the override's."""
+    if isinstance(saved, (list, tuple)) and isinstance(asked, (list, tuple)):
+        return len(saved) == len(asked) and all(map(_same, saved, asked))
+    if isinstance(saved, bool) or isinstance(asked, bool):
+        return saved is asked
+    if isinstance(saved, (int, float)) and isinstance(asked, (int, float)):
+        return math.isclose(saved, asked, rel_tol=1e-9)
+    return saved == asked
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    """``{"a.b": value}`` for every leaf of nested dicts."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[prefix + key] = value
+    return out
+
+
+def expected_config(data: dict, overrides: list[str], seed) -> dict:
+    """The flattened config a run of the suite is made with: ``--config``'s file, the
+    settings ``command`` passes, then the variant's overrides (the data paths and the input
+    scale resolved from the data left out)."""
+    path, _, arg = FLAGS.config.partition(":")
+    spec = importlib.util.spec_from_file_location(
+        "suite_base_config", path if os.path.isabs(path) else os.path.join(ROOT, path))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    config = _flat(module.get_config(arg or None).to_dict())
+    config.update({"data.protocol": data["protocol"], "model.n_keypoints": data["n_keypoints"],
+                   "seed": int(seed), "train.progress_bar": False,
+                   "train.eval_every_steps": FLAGS.eval_every_steps})
+    for item in overrides:
+        key, _, text = item.partition("=")
+        config[key] = _literal(text)
+    for key in ("data.train_path", "data.test_path"):
+        config.pop(key, None)
+    if config.get("model.keypoint_rescale") == 0:  # resolved from the training data
+        config.pop("model.keypoint_rescale")
+    return config
+
+
+def config_mismatches(workdir: str, expected: dict) -> list[str]:
+    """``KEY: SAVED, not EXPECTED`` for each setting the run in ``workdir`` was made with
+    otherwise than ``expected`` (``expected_config``) says. Settings its config.json does
+    not record (added after the run) are not judged; no config.json, no mismatch."""
+    path = os.path.join(workdir, "config.json")
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        saved = _flat(json.load(f))
+    return [f"{key}: {json.dumps(saved[key])}, not {json.dumps(value)}"
+            for key, value in expected.items()
+            if key in saved and not _same(saved[key], value)]
 
 
 def make_data(name: str, data_root: str, out: str) -> dict:
@@ -288,6 +361,12 @@ def main(argv):
             for d in FLAGS.datasets:
                 for name, overrides in variants:
                     workdir = run_dir(FLAGS.out, name, d, seed)
+                    wrong = config_mismatches(workdir, expected_config(data[d], overrides, seed))
+                    if wrong:  # made from another config (an older variant of the same name)
+                        raise app.UsageError(
+                            f"{os.path.relpath(workdir, FLAGS.out)} was made with another config "
+                            f"than variant {name!r} asks ({'; '.join(wrong[:3])}): give the "
+                            "variant another name")
                     if not is_finished(workdir):
                         jobs.append((workdir, command(data[d], overrides, seed, workdir)))
         run_all(jobs, FLAGS.jobs, FLAGS.out)
