@@ -56,7 +56,10 @@ class Prediction(Mapping):
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
       alpha: (D,) shape-basis coefficients (with ``test_time_refine_iters`` > 0, theta
-        and alpha are Phi's refined; see ``refine_camera_and_shape``).
+        and alpha are Phi's refined; see ``refine_camera_and_shape``). With
+        ``test_time_one_handedness``, a view given its mirror image has X the mirror of
+        the basis' shape for alpha, and R, theta and the depth mirrored to match
+        (``one_handedness``).
       translation: (3,) camera translation (zeros + ``depth_offset`` unless predicted).
       scale: () camera scale (1 unless ``camera_scale``).
       kp_reprojected: (N, 2) shape_camera projected back to input coordinates (pixels
@@ -161,6 +164,11 @@ class ModelConfig:
     # every turned copy is refined; see ``refine_camera_and_shape``).
     test_time_refine_iters: int = 0
     test_time_refine_prior: float = 0.3
+    # Not in the release (False): at inference, a view whose canonical shape is, up to a
+    # rotation, nearer to the mirror image of the basis' mean shape than to the mean shape
+    # is given its mirror image, which fits the 2D points equally (orthographic models only;
+    # see ``one_handedness``): every view then has the mean shape's handedness.
+    test_time_one_handedness: bool = False
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -425,6 +433,36 @@ def refine_problem(iters: int, projection_type: str) -> str:
     return ""
 
 
+def handedness_problem(one_handedness: bool, projection_type: str) -> str:
+    """Why ``test_time_one_handedness`` cannot be used with this projection ('' if it can)."""
+    if one_handedness and projection_type != "orthographic":
+        return "must be False for a perspective model: orthographic models only"
+    return ""
+
+
+def one_handedness(net, params, x_cam, x_canon, rot, theta, class_mask):
+    """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
+    ``x_canon`` is nearer, up to a proper rotation, to the mirror image of the basis' mean
+    shape than to the mean shape itself (the best orthogonal map from one centred shape onto
+    the other is then a reflection: det of their cross-covariance < 0). The mirror image:
+    the camera-frame depth reflected about its mean over the class's points (an orthographic
+    view's 2D points unchanged), the canonical shape's third axis negated, the rotation
+    conjugated by that reflection (``theta``'s first two components negated)."""
+    w = class_mask[:, None]
+    n = jnp.maximum(jnp.sum(class_mask), 1.0)
+    mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
+
+    def centred(x):
+        return (x - (jnp.sum(x * w, axis=0) / n)[None]) * w
+
+    mirrored = jnp.linalg.det(centred(x_canon).T @ centred(mean)) < 0
+    flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
+    depth_mean = jnp.sum(x_cam[:, 2] * class_mask) / n
+    x_cam = x_cam.at[:, 2].set(jnp.where(mirrored, 2 * depth_mean - x_cam[:, 2], x_cam[:, 2]))
+    theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
+    return x_cam, x_canon * flip[None], flip[:, None] * rot * flip[None], theta
+
+
 # Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
 # cost (accepted) and after one that does not (rejected, the damping raised).
 REFINE_DAMPING, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP = 1e-3, 0.3, 10.0
@@ -536,6 +574,13 @@ def forward_eval(
     if cfg.test_time_turns > 1:
         x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, net, variables, kp_norm, vis, class_mask,
                                                  x_cam))
+    theta = phi_out["theta"]
+    if cfg.test_time_one_handedness:
+        problem = handedness_problem(True, cfg.projection_type)
+        if problem:
+            raise ValueError(f"test_time_one_handedness=True ({problem})")
+        x_cam, x_canon, rot, theta = one_handedness(net, variables["params"], x_cam, x_canon,
+                                                    rot, theta, class_mask)
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image
@@ -550,7 +595,7 @@ def forward_eval(
         shape_camera=x_cam,
         shape_canonical=x_canon,
         rotation=rot,
-        theta=phi_out["theta"],
+        theta=theta,
         alpha=phi_out["alpha"],
         translation=t,
         scale=phi_out["scale"],

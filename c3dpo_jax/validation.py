@@ -184,6 +184,11 @@ def _cross_field(cfg: dict) -> list[str]:
         problem = model.refine_problem(iters, projection)
         problems.append(f"config.model.test_time_refine_iters={iters} ({problem})"
                         if problem else "")
+    one_hand = get("model.test_time_one_handedness")
+    if isinstance(one_hand, bool) and isinstance(projection, str):
+        problem = model.handedness_problem(one_hand, projection)
+        problems.append(f"config.model.test_time_one_handedness={one_hand} ({problem})"
+                        if problem else "")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]

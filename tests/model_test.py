@@ -353,3 +353,68 @@ def test_every_turned_copy_is_refined():
     assert np.abs(unrefined - want).max() > 1e-2
     np.testing.assert_allclose(_eval(cfg, variables, kp, vis)["shape_camera"][..., 2], want,
                                atol=2e-4)
+
+
+def _rotation_residual_numpy(x, ref):
+    """RMS distance of ``x`` to ``ref`` (both centred) after the best proper rotation
+    (scipy's Rotation.align_vectors, weighted Kabsch)."""
+    from scipy.spatial.transform import Rotation
+
+    rot, _ = Rotation.align_vectors(ref, x)
+    return np.sqrt(np.mean(np.sum((rot.apply(x) - ref) ** 2, axis=-1)))
+
+
+def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_its_2d():
+    from scipy.spatial.transform import Rotation
+
+    # Canonical shapes near the model's mean shape, half of them mirrored, under rotations.
+    cfg = CFG
+    variables, _, _ = _basis_views(cfg)
+    mean = _canonical_numpy(variables, np.zeros(cfg.shape_basis_size))
+    rng = np.random.default_rng(4)
+    flip = np.array([1.0, 1.0, -1.0])
+    n = 8
+    truth_mirrored = np.arange(n) % 2 == 1
+    shapes = mean + 0.05 * rng.normal(size=(n, *mean.shape))
+    shapes = np.where(truth_mirrored[:, None, None], shapes * flip, shapes)
+    rots = Rotation.random(n, random_state=5)
+    thetas = rots.as_rotvec()
+    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + 3.0
+    net = model.make_network(cfg)
+    fn = jax.jit(jax.vmap(partial(model.one_handedness, net, variables["params"]),
+                          in_axes=(0, 0, 0, 0, None)))
+    got = fn(*(jnp.asarray(a, jnp.float32) for a in (x_cam, shapes, rots.as_matrix(), thetas)),
+             jnp.ones(cfg.n_keypoints))
+    centred_mean = mean - mean.mean(0)
+    for i in range(n):
+        x = shapes[i] - shapes[i].mean(0)
+        # Independently (scipy's best rotation): is the mirror image nearer to the mean?
+        mirrored = (_rotation_residual_numpy(x * flip, centred_mean)
+                    < _rotation_residual_numpy(x, centred_mean))
+        assert mirrored == truth_mirrored[i]
+        f = flip if mirrored else np.ones(3)
+        np.testing.assert_allclose(got[1][i], shapes[i] * f, atol=1e-5)
+        np.testing.assert_allclose(got[2][i], f[:, None] * rots[i].as_matrix() * f, atol=1e-5)
+        np.testing.assert_allclose(Rotation.from_rotvec(got[3][i]).as_matrix(), got[2][i],
+                                   atol=1e-5)
+        depth = x_cam[i, :, 2]
+        want = 2 * depth.mean() - depth if mirrored else depth
+        np.testing.assert_allclose(got[0][i, :, 2], want, atol=1e-4)
+        np.testing.assert_allclose(got[0][i, :, :2], x_cam[i, :, :2], atol=1e-5)
+        # The mirrored canonical shape under the conjugated rotation is the reflected view.
+        posed = np.asarray(got[1][i], np.float64) @ np.asarray(got[2][i], np.float64).T
+        view = np.asarray(got[0][i], np.float64)
+        np.testing.assert_allclose(posed - posed.mean(0), view - view.mean(0), atol=1e-4)
+
+
+def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():
+    cfg = dataclasses.replace(CFG, test_time_one_handedness=True)
+    variables, data, off = _evaluated(CFG, seed=3)
+    on = _eval(cfg, variables, jnp.asarray(data.kp, jnp.float32),
+               jnp.asarray(data.vis, jnp.float32))
+    np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
+    for i in range(len(data.kp)):
+        a = np.asarray(on["shape_camera"][i, :, 2])
+        b = np.asarray(off["shape_camera"][i, :, 2])
+        a, b = a - a.mean(), b - b.mean()
+        assert np.allclose(a, b, atol=1e-5) or np.allclose(a, -b, atol=1e-5)

@@ -257,3 +257,13 @@ def test_test_time_refinement_rules():
     assert validation.config_problems(c) == [
         f"config.model.test_time_refine_iters=-1 (must be {validation.COUNT})",
         f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})"]
+
+
+def test_one_handedness_is_for_orthographic_models_only():
+    c = default.get_config()
+    c.model.test_time_one_handedness = True
+    assert validation.config_problems(c) == []
+    c.model.projection_type = "perspective"
+    assert validation.config_problems(c) == [
+        "config.model.test_time_one_handedness=True (must be False for a perspective model: "
+        "orthographic models only)"]
