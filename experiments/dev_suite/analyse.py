@@ -67,6 +67,11 @@ far from it in 3D is a factorisation the reprojection loss cannot tell from the 
 numbers are Phi's own output (one pass, no refinement), what the training loss sees, then
 those of the run's own inference (the default's: refined).
 
+``handedness --runs=DIR,DIR,...``: for trained runs, on the test views, the fraction of views
+whose unflipped prediction is the better one (``signs``) and the error without the
+protocol's flip, without and with ``model.test_time_one_handedness`` (which leaves the
+flip-resolved error unchanged): 0 or 1 when every view has one handedness.
+
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
 run's: whether their errors are independent (the mean is better) or shared (it is not).
@@ -389,6 +394,21 @@ def objective(run: str) -> list[float]:
     return out
 
 
+def handedness(run: str) -> list[float]:
+    """Sign agreement and no-flip error without and with ``test_time_one_handedness``, and
+    the flip-resolved error (the same both ways)."""
+    test, model = _test_split_and_model(run)
+    out = []
+    for on in (False, True):
+        m = model.replace(config=dataclasses.replace(model.config, test_time_one_handedness=on))
+        pred = evaluation.center_depth(np.asarray(
+            c3dpo_jax.reconstruct(m, test.kp, test.vis).shape_3d, np.float64), test.vis)
+        per = evaluation.mpjpe(pred, evaluation.center_depth(test.kp3d, test.vis), test.vis)
+        out += [float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
+                float(np.mean(per["mpjpe_orig"]))]
+    return out + [float(np.mean(np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))]
+
+
 def ensemble() -> list[float]:
     """Each ``--runs`` entry's test MPJPE, then that of ``sign_aligned_mean`` of them all."""
     names = {os.path.basename(os.path.normpath(r)).split("__")[0] for r in FLAGS.runs}
@@ -418,11 +438,12 @@ def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
                                               "selected", "union", "refine", "spread",
-                                              "objective", "ensemble"):
+                                              "objective", "ensemble", "handedness"):
         raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
                              "| camera --runs=... | rotations --runs=... | selected --runs=... "
                              "| union --runs=... | refine --runs=... [--priors=...] "
-                             "| spread --runs=... | objective --runs=... | ensemble --runs=...")
+                             "| spread --runs=... | objective --runs=... | ensemble --runs=... "
+                             "| handedness --runs=...")
     if argv[1] == "rotations":
         cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
         cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
@@ -454,6 +475,10 @@ def main(argv):
     if argv[1] == "objective":
         _each_run(f"| run | truth's PCA D={FLAGS.n_basis}, 3D | its 2D | Phi, 3D | Phi, 2D | "
                   "the run's inference, 3D | its 2D |\n|---|---|---|---|---|---|---|", objective)
+        return
+    if argv[1] == "handedness":
+        _each_run("| run | sign agreement | no flip | one handedness: sign agreement | no flip "
+                  "| flip-resolved |\n|---|---|---|---|---|---|", handedness)
         return
     if argv[1] == "ensemble":
         values = ensemble()
