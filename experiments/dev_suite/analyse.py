@@ -423,9 +423,9 @@ def ensemble() -> list[float]:
             + [evaluation.evaluate(sign_aligned_mean(preds), test)["mpjpe"]])
 
 
-def _each_run(header: str, fn) -> None:
-    """One table row per ``--runs`` entry: ``fn(run)``'s formatted values."""
-    print(header)
+def _each_run(columns: list[str], fn) -> None:
+    """A table with one row per ``--runs`` entry: ``fn(run)``'s values under ``columns``."""
+    print("| run | " + " | ".join(columns) + " |\n|---|" + "---|" * len(columns))
     for run in FLAGS.runs:
         try:
             values = " | ".join(f"{v:.4f}" for v in np.atleast_1d(fn(run)))
@@ -434,51 +434,43 @@ def _each_run(header: str, fn) -> None:
         print(f"| {os.path.relpath(run, FLAGS.out)} | {values} |")
 
 
+def _run_tables() -> dict:
+    """Subcommand -> (its columns after the run's, the function of a run giving them)."""
+    refined_cols = [f"refined, prior {w}" for w in FLAGS.priors]
+    return {
+        "rotations": (["model"] + [f"{m} turned, {k}" for m in ROTATION_COPIES
+                                   for k in ("mean", "median")]
+                      + [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")],
+                      rotation_average),
+        "selected": (["model"] + [f"{m} round the circle, {k}" for m in SELECT_COPIES
+                                  for k in ("lowest 2D error",
+                                            f"median within {SELECT_TOLERANCE}x")],
+                     selected_average),
+        "union": (["model", f"{UNION_COPIES} round the circle, median within "
+                   f"{SELECT_TOLERANCE}x", "the same and every copy within range"],
+                  union_average),
+        "refine": (["one pass", f"{UNION_COPIES} turned copies (union32)", *refined_cols,
+                    f"union32, every copy refined, prior {FLAGS.priors[0]}"], refined),
+        "spread": (["model's canonical spread", "truth's spread", "depth std, model / truth"],
+                   spread),
+        "objective": ([f"truth's PCA D={FLAGS.n_basis}, 3D", "its 2D", "Phi, 3D", "Phi, 2D",
+                       "the run's inference, 3D", "its 2D"], objective),
+        "handedness": (["sign agreement", "no flip", "one handedness: sign agreement",
+                        "no flip", "flip-resolved"], handedness),
+        "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
+        "signs": (["sign agreement"], sign_agreement),
+    }
+
+
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
-    if len(argv) != 2 or argv[1] not in ("floors", "clips", "signs", "camera", "rotations",
-                                              "selected", "union", "refine", "spread",
-                                              "objective", "ensemble", "handedness"):
-        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | signs --runs=... "
-                             "| camera --runs=... | rotations --runs=... | selected --runs=... "
-                             "| union --runs=... | refine --runs=... [--priors=...] "
-                             "| spread --runs=... | objective --runs=... | ensemble --runs=... "
-                             "| handedness --runs=...")
-    if argv[1] == "rotations":
-        cols = [f"{m} turned, {k}" for m in ROTATION_COPIES for k in ("mean", "median")]
-        cols += [f"{CIRCLE_COPIES} round the circle, {k}" for k in ("mean", "median")]
-        _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
-                  + "---|" * len(cols), rotation_average)
-        return
-    if argv[1] == "selected":
-        cols = [
-            f"{m} round the circle, {k}" for m in SELECT_COPIES
-            for k in ("lowest 2D error", f"median within {SELECT_TOLERANCE}x")]
-        _each_run("| run | model | " + " | ".join(cols) + " |\n|---|---|"
-                  + "---|" * len(cols), selected_average)
-        return
-    if argv[1] == "union":
-        _each_run(f"| run | model | {UNION_COPIES} round the circle, median within "
-                  f"{SELECT_TOLERANCE}x | the same and every copy within range |\n"
-                  "|---|---|---|---|", union_average)
-        return
-    if argv[1] == "refine":
-        cols = [f"refined, prior {w}" for w in FLAGS.priors]
-        cols.append(f"union32, every copy refined, prior {FLAGS.priors[0]}")
-        _each_run(f"| run | one pass | {UNION_COPIES} turned copies (union32) | "
-                  + " | ".join(cols) + " |\n|---|---|---|" + "---|" * len(cols), refined)
-        return
-    if argv[1] == "spread":
-        _each_run("| run | model's canonical spread | truth's spread | depth std, model / truth "
-                  "|\n|---|---|---|---|", spread)
-        return
-    if argv[1] == "objective":
-        _each_run(f"| run | truth's PCA D={FLAGS.n_basis}, 3D | its 2D | Phi, 3D | Phi, 2D | "
-                  "the run's inference, 3D | its 2D |\n|---|---|---|---|---|---|---|", objective)
-        return
-    if argv[1] == "handedness":
-        _each_run("| run | sign agreement | no flip | one handedness: sign agreement | no flip "
-                  "| flip-resolved |\n|---|---|---|---|---|---|", handedness)
+    tables = _run_tables()
+    if len(argv) != 2 or argv[1] not in (*tables, "floors", "clips", "ensemble"):
+        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | ensemble "
+                             "--runs=... | " + " | ".join(f"{t} --runs=..." for t in tables)
+                             + " (refine: [--priors=...])")
+    if argv[1] in tables:
+        _each_run(*tables[argv[1]])
         return
     if argv[1] == "ensemble":
         values = ensemble()
@@ -486,13 +478,6 @@ def main(argv):
                                 + ["mean of all, signs matched"]) + " |")
         print("|" + "---|" * len(values))
         print("| " + " | ".join(f"{v:.4f}" for v in values) + " |")
-        return
-    if argv[1] == "camera":
-        _each_run("| run | model | its shapes, least-2D-error camera |\n|---|---|---|",
-                  camera_refit)
-        return
-    if argv[1] == "signs":
-        _each_run("| run | sign agreement |\n|---|---|", sign_agreement)
         return
     if argv[1] == "floors":
         data_dir = os.path.join(FLAGS.out, "data")
