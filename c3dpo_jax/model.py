@@ -440,14 +440,15 @@ def handedness_problem(one_handedness: bool, projection_type: str) -> str:
     return ""
 
 
-def one_handedness(net, params, x_cam, x_canon, rot, theta, class_mask):
+def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask):
     """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
     ``x_canon`` is nearer, up to a proper rotation, to the mirror image of the basis' mean
     shape than to the mean shape itself (the best orthogonal map from one centred shape onto
     the other is then a reflection: det of their cross-covariance < 0). The mirror image:
-    the camera-frame depth reflected about its mean over the class's points (an orthographic
-    view's 2D points unchanged), the canonical shape's third axis negated, the rotation
-    conjugated by that reflection (``theta``'s first two components negated)."""
+    the camera-frame depth reflected about the translation's (``t``; an orthographic view's
+    2D points unchanged), the canonical shape's third axis negated and the rotation
+    conjugated by that reflection (``theta``'s first two components negated), so that
+    ``scale * x_canon @ rot.T + t`` is still ``x_cam``."""
     w = class_mask[:, None]
     n = jnp.maximum(jnp.sum(class_mask), 1.0)
     mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
@@ -457,8 +458,7 @@ def one_handedness(net, params, x_cam, x_canon, rot, theta, class_mask):
 
     mirrored = jnp.linalg.det(centred(x_canon).T @ centred(mean)) < 0
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
-    depth_mean = jnp.sum(x_cam[:, 2] * class_mask) / n
-    x_cam = x_cam.at[:, 2].set(jnp.where(mirrored, 2 * depth_mean - x_cam[:, 2], x_cam[:, 2]))
+    x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
     return x_cam, x_canon * flip[None], flip[:, None] * rot * flip[None], theta
 
@@ -579,8 +579,8 @@ def forward_eval(
         problem = handedness_problem(True, cfg.projection_type)
         if problem:
             raise ValueError(f"test_time_one_handedness=True ({problem})")
-        x_cam, x_canon, rot, theta = one_handedness(net, variables["params"], x_cam, x_canon,
-                                                    rot, theta, class_mask)
+        x_cam, x_canon, rot, theta = one_handedness(net, variables["params"], x_cam, t,
+                                                    x_canon, rot, theta, class_mask)
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image

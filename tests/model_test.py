@@ -379,11 +379,13 @@ def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_i
     shapes = np.where(truth_mirrored[:, None, None], shapes * flip, shapes)
     rots = Rotation.random(n, random_state=5)
     thetas = rots.as_rotvec()
-    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + 3.0
+    t = np.array([0.5, -1.0, 3.0])
+    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + t
     net = model.make_network(cfg)
     fn = jax.jit(jax.vmap(partial(model.one_handedness, net, variables["params"]),
-                          in_axes=(0, 0, 0, 0, None)))
-    got = fn(*(jnp.asarray(a, jnp.float32) for a in (x_cam, shapes, rots.as_matrix(), thetas)),
+                          in_axes=(0, None, 0, 0, 0, None)))
+    got = fn(jnp.asarray(x_cam, jnp.float32), jnp.asarray(t, jnp.float32),
+             *(jnp.asarray(a, jnp.float32) for a in (shapes, rots.as_matrix(), thetas)),
              jnp.ones(cfg.n_keypoints))
     centred_mean = mean - mean.mean(0)
     for i in range(n):
@@ -398,13 +400,13 @@ def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_i
         np.testing.assert_allclose(Rotation.from_rotvec(got[3][i]).as_matrix(), got[2][i],
                                    atol=1e-5)
         depth = x_cam[i, :, 2]
-        want = 2 * depth.mean() - depth if mirrored else depth
+        want = 2 * t[2] - depth if mirrored else depth
         np.testing.assert_allclose(got[0][i, :, 2], want, atol=1e-4)
         np.testing.assert_allclose(got[0][i, :, :2], x_cam[i, :, :2], atol=1e-5)
         # The mirrored canonical shape under the conjugated rotation is the reflected view.
-        posed = np.asarray(got[1][i], np.float64) @ np.asarray(got[2][i], np.float64).T
-        view = np.asarray(got[0][i], np.float64)
-        np.testing.assert_allclose(posed - posed.mean(0), view - view.mean(0), atol=1e-4)
+        np.testing.assert_allclose(
+            np.asarray(got[1][i], np.float64) @ np.asarray(got[2][i], np.float64).T + t,
+            got[0][i], atol=1e-4)
 
 
 def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():
