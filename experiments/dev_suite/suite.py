@@ -117,7 +117,7 @@ def _literal(text: str):
 
 
 def _same(saved, asked) -> bool:
-    """Whether a value of a run's config.json (JSON: tuples as lists) is the override's."""
+    """Whether a value of a run's config.json (JSON: tuples as lists) is the expected one."""
     if isinstance(saved, (list, tuple)) and isinstance(asked, (list, tuple)):
         return len(saved) == len(asked) and all(map(_same, saved, asked))
     if isinstance(saved, bool) or isinstance(asked, bool):
