@@ -425,19 +425,23 @@ def turns_in_range(cfg: ModelConfig) -> np.ndarray:
     return off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK
 
 
+def _orthographic_only(used: bool, off: str, projection_type: str) -> str:
+    """The problem of an inference setting for orthographic models (``off``: its value that
+    turns it off) when it is ``used`` with another projection; '' otherwise."""
+    if used and projection_type != "orthographic":
+        return f"must be {off} for a perspective model: orthographic models only"
+    return ""
+
+
 def refine_problem(iters: int, projection_type: str) -> str:
     """Why ``test_time_refine_iters=iters`` cannot be used with this projection ('' if it
     can; 0, no refinement, always can)."""
-    if iters > 0 and projection_type != "orthographic":
-        return "must be 0 (no refinement) for a perspective model: orthographic models only"
-    return ""
+    return _orthographic_only(iters > 0, "0 (no refinement)", projection_type)
 
 
 def handedness_problem(one_handedness: bool, projection_type: str) -> str:
     """Why ``test_time_one_handedness`` cannot be used with this projection ('' if it can)."""
-    if one_handedness and projection_type != "orthographic":
-        return "must be False for a perspective model: orthographic models only"
-    return ""
+    return _orthographic_only(one_handedness, "False", projection_type)
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask):

@@ -178,17 +178,13 @@ def _cross_field(cfg: dict) -> list[str]:
         if problems[-1]:
             problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
                             "the single pass)")
-    iters = get("model.test_time_refine_iters")
     projection = get("model.projection_type")
-    if isinstance(iters, int) and isinstance(projection, str):
-        problem = model.refine_problem(iters, projection)
-        problems.append(f"config.model.test_time_refine_iters={iters} ({problem})"
-                        if problem else "")
-    one_hand = get("model.test_time_one_handedness")
-    if isinstance(one_hand, bool) and isinstance(projection, str):
-        problem = model.handedness_problem(one_hand, projection)
-        problems.append(f"config.model.test_time_one_handedness={one_hand} ({problem})"
-                        if problem else "")
+    for key, kind, rule in (("test_time_refine_iters", int, model.refine_problem),
+                            ("test_time_one_handedness", bool, model.handedness_problem)):
+        value = get(f"model.{key}")  # inference settings for orthographic models only
+        if isinstance(value, kind) and isinstance(projection, str):
+            problem = rule(value, projection)
+            problems.append(f"config.model.{key}={value} ({problem})" if problem else "")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]

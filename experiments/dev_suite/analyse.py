@@ -222,11 +222,16 @@ def _test_reconstruction(run: str):
     return test, model, c3dpo_jax.reconstruct(model, test.kp, test.vis)
 
 
+def _per_view(shape_3d, test) -> dict:
+    """``evaluation.mpjpe``'s per-view errors of ``shape_3d`` on ``test``, depths centred."""
+    return evaluation.mpjpe(evaluation.center_depth(np.asarray(shape_3d, np.float64), test.vis),
+                            evaluation.center_depth(test.kp3d, test.vis), test.vis)
+
+
 def sign_agreement(run: str) -> float:
     """Fraction of the run's test views whose unflipped prediction is the better one."""
     test, _, rec = _test_reconstruction(run)
-    per = evaluation.mpjpe(evaluation.center_depth(np.asarray(rec.shape_3d), test.vis),
-                           evaluation.center_depth(test.kp3d, test.vis), test.vis)
+    per = _per_view(rec.shape_3d, test)
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
 
 
@@ -401,9 +406,7 @@ def handedness(run: str) -> list[float]:
     out = []
     for on in (False, True):
         m = model.replace(config=dataclasses.replace(model.config, test_time_one_handedness=on))
-        pred = evaluation.center_depth(np.asarray(
-            c3dpo_jax.reconstruct(m, test.kp, test.vis).shape_3d, np.float64), test.vis)
-        per = evaluation.mpjpe(pred, evaluation.center_depth(test.kp3d, test.vis), test.vis)
+        per = _per_view(c3dpo_jax.reconstruct(m, test.kp, test.vis).shape_3d, test)
         out += [float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
                 float(np.mean(per["mpjpe_orig"]))]
     return out + [float(np.mean(np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))]

@@ -138,16 +138,21 @@ def _flat(tree: dict, prefix: str = "") -> dict:
     return out
 
 
-def expected_config(data: dict, overrides: list[str], seed) -> dict:
-    """The flattened config a run of the suite is made with: ``--config``'s file, the
-    settings ``command`` passes, then the variant's overrides (the data paths and the input
-    scale resolved from the data left out)."""
+def base_config() -> dict:
+    """``--config``'s config (file and arguments), flattened."""
     path, _, arg = FLAGS.config.partition(":")
     spec = importlib.util.spec_from_file_location(
         "suite_base_config", path if os.path.isabs(path) else os.path.join(ROOT, path))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    config = _flat(module.get_config(arg or None).to_dict())
+    return _flat(module.get_config(arg or None).to_dict())
+
+
+def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
+    """The flattened config a run of the suite is made with: ``base`` (``base_config``), the
+    settings ``command`` passes, then the variant's overrides (the data paths and the input
+    scale resolved from the data left out)."""
+    config = dict(base)
     config.update({"data.protocol": data["protocol"], "model.n_keypoints": data["n_keypoints"],
                    "seed": int(seed), "train.progress_bar": False,
                    "train.eval_every_steps": FLAGS.eval_every_steps})
@@ -356,12 +361,13 @@ def main(argv):
         data = {d: make_data(d, FLAGS.data_root, FLAGS.out) for d in FLAGS.datasets}
         # Seed, then dataset, then variant: a screen of several variants that is stopped
         # early has compared all of them on the first datasets and seeds asked for.
-        jobs = []
+        jobs, base = [], base_config()
         for seed in FLAGS.seeds:
             for d in FLAGS.datasets:
                 for name, overrides in variants:
                     workdir = run_dir(FLAGS.out, name, d, seed)
-                    wrong = config_mismatches(workdir, expected_config(data[d], overrides, seed))
+                    wrong = config_mismatches(workdir,
+                                          expected_config(base, data[d], overrides, seed))
                     if wrong:  # made from another config (an older variant of the same name)
                         raise app.UsageError(
                             f"{os.path.relpath(workdir, FLAGS.out)} was made with another config "
