@@ -77,6 +77,15 @@ def read_results(workdir: str) -> dict:
         return {}
 
 
+def clock_at(results: dict, step: int) -> float | None:
+    """``train_s`` of the latest evaluation record (history or final) of ``results`` at or
+    before ``step``: the training clock a run resumed (or re-scored) at ``step`` goes on from;
+    None when no record has one."""
+    records = [r for r in (*results.get("history", []), results.get("final") or {})
+               if r.get("step", step + 1) <= step and "train_s" in r]
+    return max(records, key=lambda r: r["step"])["train_s"] if records else None
+
+
 def trim_metrics(workdir: str, step: int) -> None:
     """Drops ``metrics.jsonl`` records past ``step``: a resumed run replays those steps."""
     path = os.path.join(workdir, "metrics.jsonl")

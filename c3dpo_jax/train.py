@@ -277,7 +277,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
 
     Every evaluation record carries ``train_s``: seconds of training so far (compilation
     and metric logging included; evaluation, checkpoint writing and data loading excluded;
-    a resumed run continues the clock of its last record). Returns the final
+    a resumed run continues the clock of its latest record at or before its checkpoint,
+    ``run_records.clock_at``). Returns the final
     ``eval_results.json`` content (also written to ``workdir``).
     """
     validation.check_config(config)
@@ -315,9 +316,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         res = evaluate_split(state.variables, test_data, spec.model, protocol, eval_fn, eval_bs)
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
-    # A resumed run keeps the evaluations made before its checkpoint.
-    history = [h for h in run_records.read_results(workdir).get("history", []) if h["step"] <= step]
-    train_s = history[-1].get("train_s", 0.0) if history else 0.0
+    # A resumed run keeps the evaluations made before its checkpoint and their clock.
+    before = run_records.read_results(workdir)
+    history = [h for h in before.get("history", []) if h["step"] <= step]
+    train_s = run_records.clock_at(before, step) or 0.0
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar)
@@ -383,7 +385,9 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
 def evaluate_checkpoint(config, workdir: str) -> dict:
     """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
 
-    Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays.
+    Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays,
+    and the new ``final`` keeps the training clock of the latest record at or before the
+    checkpoint's step (``run_records.clock_at``).
     """
     train_data, test_data = load_splits(config.data)
     config = resolve_input_scale(config, train_data, checkpoint.load_config(workdir))
@@ -393,7 +397,11 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
-    results = dict(run_records.read_results(workdir), final=dict(step=step, **final),
+    before = run_records.read_results(workdir)
+    clock = run_records.clock_at(before, step)
+    final = dict(step=step, epoch=step // spec.steps_per_epoch,
+                 **({} if clock is None else {"train_s": clock}), **final)
+    results = dict(before, final=final,
                    baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
     run_records.write_results(workdir, results)
     return results

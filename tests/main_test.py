@@ -53,6 +53,10 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     reevaluated = json.loads(_read(workdir, "eval_results.json"))
     assert reevaluated["final"]["mpjpe"] == pytest.approx(results["final"]["mpjpe"], rel=1e-5)
+    # The run's clock survives the resume and the re-scoring (tables read the minutes from
+    # final): no training happened after the first run, so at most the loop's overhead.
+    assert reevaluated["final"]["epoch"] == results["final"]["epoch"]
+    assert reevaluated["final"]["train_s"] == pytest.approx(results["final"]["train_s"], abs=0.5)
     assert [h["step"] for h in reevaluated["history"]] == [h["step"] for h in results["history"]]
     assert results["history"], "the smoke run evaluates at its epoch ends"
 
