@@ -194,3 +194,36 @@ out = [analyse.deformation_spread(mirrored), analyse.deformation_spread(deformed
     assert spread_rigid < 1e-6 and spread_deformed > 0.05
     assert flip_err < 1e-12
     assert rigid_err < 1e-9 and rank1_err < 1e-4 and rank1_d1_err > 0.05
+
+
+def test_span_fit_and_2d_refit_recover_shapes_in_the_span():
+    """analyse._span_fit represents scaled, rotated, half-mirrored copies of rank-1
+    deformations exactly with the shape and its mode (weights, rotation and mirror give the
+    shapes back), not with the shape alone; analyse._refit_2d, started near each view's
+    answer, converges to it from the 2D points alone (a hidden point changes nothing)."""
+    code = """
+import numpy as np
+from scipy.spatial.transform import Rotation
+rng = np.random.default_rng(5)
+base, mode = rng.normal(size=(10, 3)), rng.normal(size=(10, 3))
+rots = Rotation.random(12, random_state=6).as_matrix()
+shapes = np.einsum('mij,mnj->mni', rots, base + rng.normal(size=(12, 1, 1)) * mode)
+shapes = shapes * rng.uniform(0.5, 2, (12, 1, 1)) * np.array([1.0, 1.0, -1.0]) ** (
+    np.arange(12) % 2)[:, None, None]
+shapes = shapes - shapes.mean(1, keepdims=True)
+rows, w, rot, sign, err = analyse._span_fit(shapes, np.stack([base, mode]))
+mirror = np.stack([np.ones(12), np.ones(12), sign], -1)[:, None]
+back = np.einsum('mnj,mjk->mnk', (w @ rows).reshape(shapes.shape), rot) * mirror
+vis = np.ones((12, 10))
+vis[:, 3] = 0.0
+refit, dist = analyse._refit_2d(rows, w + 0.05 * rng.normal(size=w.shape), rot * mirror,
+                                shapes[..., :2] + 1.0, vis)
+out = [float(err.max()), float(np.abs(back - shapes).max()),
+       float(analyse._span_fit(shapes, base[None])[-1].mean()), float(dist.max()),
+       float(np.abs(refit - np.concatenate([shapes[..., :2] + 1.0, shapes[..., 2:]], -1)).max())]
+"""
+    err, back, rigid_err, dist, refit = _suite_value(
+        "analyse", f"(exec({code!r}, globals()), out)[1]")
+    assert err < 1e-6 and back < 1e-6
+    assert rigid_err > 0.05
+    assert dist < 1e-6 and refit < 1e-5

@@ -72,6 +72,14 @@ whose unflipped prediction is the better one (``signs``) and the error without t
 protocol's flip, without and with ``model.test_time_one_handedness`` (which leaves the
 flip-resolved error unchanged): 0 or 1 when every view has one handedness.
 
+``basis --runs=DIR,DIR,...``: for trained runs, is it the learnt shape basis or the choice of
+its coefficients that separates the model from the truth? The mean distance of the best fit
+to each 3D shape (free rotation, mirror and scale) in the span of the truth's PCA basis of
+the run's size and in the span of the run's own basis, on test and training views; then, on
+up to 500 test views, the run's inference and each view's 2D reprojection error minimised
+in the learnt span without a prior, from the inference and from the truth's best fit: their
+3D error and 2D distance.
+
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
 run's: whether their errors are independent (the mean is better) or shared (it is not).
@@ -92,6 +100,7 @@ import suite  # noqa: E402
 import c3dpo_jax  # noqa: E402
 import c3dpo_jax.cli  # noqa: E402
 from c3dpo_jax import baselines, evaluation  # noqa: E402
+from c3dpo_jax import model as model_lib  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -101,14 +110,19 @@ flags.DEFINE_list("runs", [], "workdirs of trained runs (every subcommand but fl
 flags.DEFINE_list("priors", ["0.3", "1", "3"], "refine: the prior weights scored")
 
 
-def _rotate_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Each shape of ``x`` (M, N, 3) under the rotation (no reflection) closest to ``ref``
-    (M, N, 3) or (N, 3) (orthogonal Procrustes)."""
+def _rotation_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(M, 3, 3): for each shape of ``x`` (M, N, 3) the rotation (no reflection) ``Q`` with
+    ``x @ Q`` closest to ``ref`` (M, N, 3) or (N, 3) (orthogonal Procrustes)."""
     ref = np.broadcast_to(ref, x.shape)
     u, _, vt = np.linalg.svd(np.einsum("mni,mnj->mij", x, ref))
     d = np.sign(np.linalg.det(u @ vt))
     u[:, :, 2] *= d[:, None]
-    return np.einsum("mni,mij->mnj", x, u @ vt)
+    return u @ vt
+
+
+def _rotate_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Each shape of ``x`` (M, N, 3) under the rotation closest to ``ref`` (``_rotation_onto``)."""
+    return np.einsum("mni,mij->mnj", x, _rotation_onto(x, ref))
 
 
 def _centred(x) -> np.ndarray:
@@ -122,15 +136,30 @@ def oracle_basis_fit(train_kp3d: np.ndarray, shapes: np.ndarray, n_basis: int,
     ``n_basis`` vectors of the aligned, centred ``train_kp3d``, under its best rotation,
     in the frame of ``shapes`` (alternately the best shape in the span and the best
     rotation, ``n_iters`` + 1 times, from the rotation onto the Procrustes mean)."""
+    mean, mu, basis = _truth_pca(train_kp3d, n_basis)
+    return _fit_in_span(_rotate_onto(shapes, mean), mu, basis, n_iters, shapes)
+
+
+def _truth_pca(train_kp3d: np.ndarray, n_basis: int):
+    """``(mean, mu, basis)``: the Procrustes mean shape (N, 3) of ``train_kp3d``, and the
+    mean (3N,) and first ``n_basis`` principal directions (n_basis, 3N; orthonormal rows) of
+    the centred training shapes rotated onto it."""
     mean = _centred(baselines.procrustes_mean_shape(train_kp3d)[None])[0]
     aligned = _rotate_onto(_centred(train_kp3d), mean).reshape(len(train_kp3d), -1)
     mu = aligned.mean(0)
-    basis = np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
-    x = _rotate_onto(shapes, mean)
+    return mean, mu, np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
+
+
+def _fit_in_span(x: np.ndarray, offset: np.ndarray, basis: np.ndarray, n_iters: int,
+                 frame: np.ndarray) -> np.ndarray:
+    """The best fit to each of ``x`` (M, N, 3; centred, roughly rotated onto the model) of
+    ``offset`` (3N,) plus the span of ``basis``' orthonormal rows, under its best rotation
+    (alternately the nearest shape in the span and the best rotation, ``n_iters`` + 1
+    times), rotated onto ``frame`` (M, N, 3)."""
     for _ in range(n_iters + 1):
-        fit = ((x.reshape(len(x), -1) - mu) @ basis.T @ basis + mu).reshape(x.shape)
+        fit = ((x.reshape(len(x), -1) - offset) @ basis.T @ basis + offset).reshape(x.shape)
         x = _rotate_onto(x, fit)
-    return _rotate_onto(fit, shapes)
+    return _rotate_onto(fit, frame)
 
 
 def deformation_spread(shapes: np.ndarray, n_iters: int = 5) -> float:
@@ -399,6 +428,100 @@ def objective(run: str) -> list[float]:
     return out
 
 
+def _span_fit(shapes: np.ndarray, vectors: np.ndarray, n_iters: int = 10):
+    """The best fit to each of ``shapes`` (M, N, 3) in the linear span of ``vectors`` (R, N,
+    3; the first a shape the others deform) under a rotation, or a mirror and a rotation,
+    whichever fits a shape better (``_fit_in_span``, from the rotation onto ``vectors[0]``):
+    any scale, any handedness. Returns ``(rows, weights, rotations, signs, error)``: the
+    span's orthonormal rows (R, 3N), each fit's weights on them (M, R), the rotation (M, 3, 3)
+    taking it to ``shapes`` (``fit @ rotation``) mirrored by ``signs`` (M,) on depth, and
+    the mean point distance of each fit (M,)."""
+    truth = _centred(shapes)
+    rows = np.linalg.svd(_centred(vectors).reshape(len(vectors), -1),
+                         full_matrices=False)[2][:len(vectors)]
+    best = None
+    for sign in (1.0, -1.0):
+        x = truth * np.array([1.0, 1.0, sign])
+        canon = _rotate_onto(x, _centred(vectors[:1])[0])
+        for _ in range(n_iters + 1):
+            w = canon.reshape(len(x), -1) @ rows.T
+            canon = _rotate_onto(canon, (w @ rows).reshape(x.shape))
+        fit = (w @ rows).reshape(x.shape)
+        rot = _rotation_onto(fit, x)
+        err = np.linalg.norm(fit @ rot - x, axis=-1).mean(-1)
+        if best is None:
+            best = [w, rot, np.full(len(x), sign), err]
+        else:
+            better = err < best[3]
+            best = [np.where(better[:, None], w, best[0]),
+                    np.where(better[:, None, None], rot, best[1]),
+                    np.where(better, sign, best[2]), np.minimum(err, best[3])]
+    return (rows, *best)
+
+
+def _refit_2d(rows, weights, rotations, kp, vis):
+    """Each view's 2D reprojection error minimised from the given start (scipy's
+    Levenberg-Marquardt over the weights on ``rows``, a rotation after ``rotations`` and a 2D
+    translation; orthographic, visible points): ``(camera-frame shapes (M, N, 3), mean 2D
+    distance of the visible points per view (M,))``."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    n = kp.shape[1]
+    shapes, dist = [], []
+    for w0, r0, k, v in zip(weights, rotations, kp, vis):
+        def cam(p, w0=w0, r0=r0):
+            canon = ((w0 + p[3:-2]) @ rows).reshape(n, 3)
+            return canon @ r0 @ Rotation.from_rotvec(p[:3]).as_matrix()
+
+        def residual(p, k=k, v=v, cam=cam):
+            return ((cam(p)[:, :2] + p[-2:] - k) * v[:, None]).ravel()
+
+        p = least_squares(residual, np.zeros(5 + len(w0)), method="lm").x
+        shapes.append(cam(p) + np.array([*p[-2:], 0.0]))
+        dist.append(np.linalg.norm(residual(p).reshape(n, 2), axis=-1).sum() / v.sum())
+    return np.stack(shapes), np.array(dist)
+
+
+REFIT_VIEWS = 500
+
+
+def basis(run: str) -> list[float]:
+    """Is the learnt basis or the choice of coefficients what separates a run from the truth?
+    The mean point distance of the best fit to each 3D shape, with a free rotation, mirror
+    and scale (``_span_fit``), in the span of the truth's own PCA basis of the run's size
+    (with its mean shape) and in the span of the run's mean and basis shapes, on the test
+    views and on up to ``OBJECTIVE_VIEWS`` training views; then, on up to ``REFIT_VIEWS``
+    test views, the test MPJPE and mean 2D distance of the run's inference, and of each
+    view's 2D reprojection error minimised in the learnt span (no prior) from two starts:
+    the run's own reconstruction and the learnt span's best fit to the truth."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    test, model = _test_split_and_model(run)
+    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
+    pick = np.random.default_rng(0).permutation
+    views = train.kp3d[np.sort(pick(len(train))[:OBJECTIVE_VIEWS])]
+    d = model.config.shape_basis_size
+    net, params = model_lib.make_network(model.config), model.variables["params"]
+    shapes = np.stack([np.asarray(net.apply({"params": params}, a, method="shape"), np.float64)
+                       for a in np.eye(d + 1, d, -1, np.float32)])
+    learnt = np.concatenate([shapes[:1], shapes[1:] - shapes[:1]])
+    _, mu, pca = _truth_pca(train.kp3d, d)
+    truth = np.concatenate([mu[None], pca]).reshape(d + 1, -1, 3)
+    out = [float(_span_fit(x, v)[-1].mean())
+           for x, v in ((test.kp3d, truth), (test.kp3d, learnt), (views, learnt))]
+    sub = test.subset(np.sort(pick(len(test))[:REFIT_VIEWS]))
+    rec = c3dpo_jax.reconstruct(model, sub.kp, sub.vis)
+    out += [evaluation.evaluate(rec.shape_3d, sub)["mpjpe"], float(
+        (np.linalg.norm(np.asarray(rec.kp_reprojected) - sub.kp, axis=-1) * sub.vis).sum()
+        / sub.vis.sum())]
+    for start in (np.asarray(rec.shape_3d, np.float64), sub.kp3d):
+        rows, w, rot, sign, _ = _span_fit(start, learnt)
+        mirror = np.stack([np.ones_like(sign), np.ones_like(sign), sign], -1)[:, None]
+        refit, dist = _refit_2d(rows, w, rot * mirror, sub.kp, sub.vis)
+        out += [evaluation.evaluate(refit, sub)["mpjpe"], float(dist.mean())]
+    return out
+
+
 def handedness(run: str) -> list[float]:
     """Sign agreement and no-flip error without and with ``test_time_one_handedness``, and
     the flip-resolved error (the same both ways)."""
@@ -458,6 +581,9 @@ def _run_tables() -> dict:
                    spread),
         "objective": ([f"truth's PCA D={FLAGS.n_basis}, 3D", "its 2D", "Phi, 3D", "Phi, 2D",
                        "the run's inference, 3D", "its 2D"], objective),
+        "basis": (["truth's PCA (the run's D), test", "learnt span, test",
+                   "learnt span, training", "inference: MPJPE", "2D", "2D refit from it: MPJPE",
+                   "2D", "2D refit from the truth's fit: MPJPE", "2D"], basis),
         "handedness": (["sign agreement", "no flip", "one handedness: sign agreement",
                         "no flip", "flip-resolved"], handedness),
         "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
