@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 import flax.struct
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -500,8 +501,9 @@ def refine_camera_and_shape(cfg: ModelConfig, net, params, phi_out, kp_norm, vis
         normal = jac.T @ jac
         # Marquardt's scaling, floored so that a direction the cost does not see (a hidden
         # view's rotation, an unused basis vector) still gets a damped, finite step.
-        delta = jnp.linalg.solve(normal + damping * jnp.diag(jnp.diag(normal) + 1e-9),
-                                 -jac.T @ r)
+        # The damped normal matrix is symmetric positive definite: Cholesky, not LU.
+        delta = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(
+            normal + damping * jnp.diag(jnp.diag(normal) + 1e-9)), -jac.T @ r)
         # False for a NaN step: it is not taken.
         lower = jnp.sum(residuals(p + delta) ** 2) < jnp.sum(r**2)
         return (jnp.where(lower, p + delta, p),
