@@ -13,8 +13,10 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from c3dpo_jax.data import KeypointData
 
 
-def device_train_data(data: KeypointData, class_balanced: bool):
-    """Training arrays for the device; sorted by class with lookup tables if balanced."""
+def device_train_data(data: KeypointData, class_balanced: bool, with_3d: bool = False):
+    """Training arrays for the device (``with_3d``: the 3D ground truth too, ``kp3d``);
+    sorted by class with lookup tables if balanced."""
+    tables = {}
     if class_balanced and data.group is not None:
         data = data.subset(np.argsort(data.group, kind="stable"))
         counts = np.bincount(data.group, minlength=len(data.group_names))
@@ -22,8 +24,9 @@ def device_train_data(data: KeypointData, class_balanced: bool):
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         tables = {"class_start": starts[present].astype(np.int32),
                   "class_count": counts[present].astype(np.int32)}
-        return jax.device_put(dict(data.model_inputs(), **tables))
-    return jax.device_put(data.model_inputs())
+    if with_3d:
+        tables["kp3d"] = data.kp3d.astype(np.float32)
+    return jax.device_put(dict(data.model_inputs(), **tables))
 
 
 def sample_indices(data, key, batch_size: int):

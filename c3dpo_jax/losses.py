@@ -21,7 +21,7 @@ from jaxtyping import Array, Float
 from c3dpo_jax import geometry, model, so3
 
 __all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "draw_rotations",
-           "huber", "make_loss_fn", "reprojection"]
+           "huber", "make_loss_fn", "reprojection", "supervised"]
 
 
 def huber(dist_sq: Float[Array, "*S"], scaling: float) -> Float[Array, "*S"]:
@@ -67,6 +67,20 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     if canon.shape[-1] == 0:
         return jnp.zeros(())
     return jnp.mean(canon)
+
+
+def supervised_problem(weight: float, projection_type: str) -> str:
+    """'' or why ``w_supervised`` cannot be ``weight`` with ``projection_type`` (the camera
+    frame's depth is compared up to a shift: orthographic models only)."""
+    return model.orthographic_only(weight > 0, "0", projection_type)
+
+
+def supervised(sup_dist_sq: Float[Array, "B N"], class_mask: Float[Array, "B N"]
+               ) -> Float[Array, ""]:
+    """Mean over examples of the mean, over the class's points, of each point's distance to
+    the 3D ground truth (the square root taken here, with a floor that keeps its gradient
+    finite at a perfect fit)."""
+    return jnp.mean(jax.vmap(geometry.masked_mean)(jnp.sqrt(sup_dist_sq + 1e-12), class_mask))
 
 
 def deformation(deform_sq: Float[Array, "B N"], class_mask: Float[Array, "B N"]
@@ -125,7 +139,12 @@ class LossConfig:
     canonicalisation weight linearly from ``w_canonicalization`` at step ``first`` to
     ``w_canonicalization_final`` at step ``last`` (``first == last``: a jump); empty: the
     weight is constant. ``deformation_ramp`` and ``w_deformation_final`` do the same for
-    the deformation prior's weight."""
+    the deformation prior's weight.
+
+    ``w_supervised`` (0: C3DPO, which never sees 3D) weights the mean distance of the
+    camera-frame shape's points to the training views' 3D ground truth (both centred): the
+    same network trained with the truth, the reference of what one view's points allow
+    (experiments/dev_suite). Its training split needs 3D points."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0
@@ -134,6 +153,7 @@ class LossConfig:
     w_deformation: float = 0.0
     w_deformation_final: float | None = None
     deformation_ramp: tuple[int, ...] = ()
+    w_supervised: float = 0.0
     huber_scaling: float = 0.01
     reprojection_normalization: str = "kp_total_count"
     squared_reprojection_loss: bool = False
@@ -193,12 +213,15 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
         keys = jax.random.split(key, batch["vis"].shape[0])
         rotations = jax.vmap(partial(draw_rotations, cfg=model_cfg))(keys)
         intrinsics = batch.get("intrinsics")
+        kp3d = batch["kp3d"] if loss_cfg.w_supervised else None
         per_example = partial(model.forward_train, cfg=model_cfg)
         # BatchNorm's statistics are batch means: one value, not one per example.
         terms, stats = jax.vmap(
-            per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0),
+            per_example, in_axes=(None, 0, 0, 0, None if intrinsics is None else 0, 0,
+                                  None if kp3d is None else 0),
             out_axes=(0, None), axis_name="batch",
-        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, rotations)
+        )(variables, batch["kp"], batch["vis"], batch["class_mask"], intrinsics, rotations,
+          kp3d)
         l_repro = reprojection(loss_cfg.penalty(terms["dist_sq"]), batch["vis"],
                                loss_cfg.reprojection_normalization)
         l_canon = canonicalisation(canonicalisation_per_sample(
@@ -209,11 +232,16 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
         if loss_cfg.w_deformation or loss_cfg.w_deformation_final:
             # Only with the prior on: without it the objective is the paper's, op for op.
             objective = objective + loss_cfg.deformation_weight(step) * l_deform
+        extra = {}
+        if kp3d is not None:
+            extra["loss/supervised"] = supervised(terms["sup_dist_sq"], batch["class_mask"])
+            objective = objective + loss_cfg.w_supervised * extra["loss/supervised"]
         metrics = {
             "loss": objective,
             "loss/reprojection": l_repro,
             "loss/canonicalisation": l_canon,
             "loss/deformation": l_deform,
+            **extra,
         }
         return objective, (stats, metrics)
 

@@ -27,7 +27,7 @@ from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, so3
 from c3dpo_jax.networks import C3DPONet
-from c3dpo_jax.types import Kp2, Vis
+from c3dpo_jax.types import Kp2, Kp3, Vis
 
 Variables = dict[str, Any]
 # A pytree leaf: a jax.Array, numpy after ``device_get``, a ShapeDtypeStruct under
@@ -304,6 +304,8 @@ def forward_train(
     class_mask: Float[Array, " N"],
     intrinsics: Float[Array, "3 3"] | None,
     rotations: TrainRotations,
+    kp3d: Kp3 | None = None,
+    *,
     cfg: ModelConfig,
 ) -> tuple[dict[str, Array], dict[str, Any]]:
     """Training forward pass of one example, under ``vmap(axis_name="batch")``: a pure
@@ -315,7 +317,11 @@ def forward_train(
       (S, N), the squared distance of each point of Psi's reconstruction of each randomly
       rotated canonical shape to that shape (S = 0 without Psi), ``deform_sq`` (N,), the
       squared distance of each point of the canonical shape to the mean shape (its
-      deformation); the updated BatchNorm statistics. ``losses`` penalises and reduces them.
+      deformation); with the example's 3D ground truth ``kp3d`` (camera frame, the input's
+      units; orthographic models), also ``sup_dist_sq`` (N,), the squared distance of each
+      point of the camera-frame shape to it, both centred on their class's points, in the
+      network's input units. The updated BatchNorm statistics. ``losses`` penalises and
+      reduces them.
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
@@ -354,6 +360,12 @@ def forward_train(
     mean_shape = _shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
              "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1)}
+    if kp3d is not None:
+        def centred(x):
+            return x - geometry.masked_mean(x, class_mask)[None]
+
+        terms["sup_dist_sq"] = jnp.sum(
+            (centred(x_cam) - centred(kp3d * cfg.keypoint_rescale)) ** 2, axis=-1)
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
             net, params, stats, x_canon, class_mask, rotations.canonicalisation
@@ -426,9 +438,9 @@ def turns_in_range(cfg: ModelConfig) -> np.ndarray:
     return off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK
 
 
-def _orthographic_only(used: bool, off: str, projection_type: str) -> str:
-    """The problem of an inference setting for orthographic models (``off``: its value that
-    turns it off) when it is ``used`` with another projection; '' otherwise."""
+def orthographic_only(used: bool, off: str, projection_type: str) -> str:
+    """The problem of a setting for orthographic models (``off``: its value that turns it
+    off) when it is ``used`` with another projection; '' otherwise."""
     if used and projection_type != "orthographic":
         return f"must be {off} for a perspective model: orthographic models only"
     return ""
@@ -437,12 +449,12 @@ def _orthographic_only(used: bool, off: str, projection_type: str) -> str:
 def refine_problem(iters: int, projection_type: str) -> str:
     """Why ``test_time_refine_iters=iters`` cannot be used with this projection ('' if it
     can; 0, no refinement, always can)."""
-    return _orthographic_only(iters > 0, "0 (no refinement)", projection_type)
+    return orthographic_only(iters > 0, "0 (no refinement)", projection_type)
 
 
 def handedness_problem(one_handedness: bool, projection_type: str) -> str:
     """Why ``test_time_one_handedness`` cannot be used with this projection ('' if it can)."""
-    return _orthographic_only(one_handedness, "False", projection_type)
+    return orthographic_only(one_handedness, "False", projection_type)
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask):

@@ -36,6 +36,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -116,7 +117,12 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
 predict = predict_split
 
 
-def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str) -> None:
+def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
+                with_3d: bool = False) -> None:
+    if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
+        what = "none" if data.kp3d is None else "some that is not finite"
+        raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
+                         f"{split} split has {what} (kp_loc_3d)")
     if data.n_keypoints != model_cfg.n_keypoints:
         raise ValueError(
             f"{split} split has {data.n_keypoints} keypoints but config.model.n_keypoints is "
@@ -292,7 +298,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))
     checkpoint.check_workdir(workdir, record)
     record["software"] = checkpoint.software_history(workdir)
-    _check_data(train_data, spec.model, "train")
+    _check_data(train_data, spec.model, "train", with_3d=spec.loss.w_supervised > 0)
     _check_data(test_data, spec.model, "test")
     checkpoint.save_config(workdir, record)  # only once every check has passed
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
@@ -303,7 +309,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     run_records.trim_metrics(workdir, step)
-    data = device_data.device_train_data(train_data, config.data.class_balanced)
+    data = device_data.device_train_data(train_data, config.data.class_balanced,
+                                         with_3d=spec.loss.w_supervised > 0)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)

@@ -125,6 +125,7 @@ RULES: dict[str, Range | OneOf] = {
     "loss.w_reprojection": NON_NEGATIVE,
     "loss.w_canonicalization": NON_NEGATIVE,
     "loss.w_deformation": NON_NEGATIVE,
+    "loss.w_supervised": NON_NEGATIVE,
     "optim.optimizer": OneOf(OPTIMIZERS),
     "optim.lr": POSITIVE,
     "optim.momentum": Range(lo=0, hi=1, hi_open=True),
@@ -179,12 +180,13 @@ def _cross_field(cfg: dict) -> list[str]:
             problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
                             "the single pass)")
     projection = get("model.projection_type")
-    for key, kind, rule in (("test_time_refine_iters", int, model.refine_problem),
-                            ("test_time_one_handedness", bool, model.handedness_problem)):
-        value = get(f"model.{key}")  # inference settings for orthographic models only
+    for key, kind, rule in (("model.test_time_refine_iters", int, model.refine_problem),
+                            ("model.test_time_one_handedness", bool, model.handedness_problem),
+                            ("loss.w_supervised", (int, float), losses.supervised_problem)):
+        value = get(key)  # settings for orthographic models only
         if isinstance(value, kind) and isinstance(projection, str):
             problem = rule(value, projection)
-            problems.append(f"config.model.{key}={value} ({problem})" if problem else "")
+            problems.append(f"config.{key}={value} ({problem})" if problem else "")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]
@@ -210,7 +212,9 @@ def _cross_field(cfg: dict) -> list[str]:
             "config.train.num_steps=0 and config.train.epochs=0 (nothing to "
             "train: set one of them >= 1)"
         )
-    if get("loss.w_reprojection") == 0 and get("loss.w_canonicalization") == 0:
+    supervised = get("loss.w_supervised")
+    if (get("loss.w_reprojection") == 0 and get("loss.w_canonicalization") == 0
+            and supervised in (0, _MISSING)):
         problems.append(
             "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 "
             "(at least one loss weight must be > 0)"

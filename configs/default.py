@@ -62,13 +62,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # canonicalisation weight linearly to w_canonicalization_final; () keeps it constant)
     # and the options of the terms (the release keeps them with the model); w_deformation
     # (not in the paper: 0) weights a Gaussian prior on the deformations, deformation_ramp
-    # and w_deformation_final ramp it as the canonicalisation weight.
+    # and w_deformation_final ramp it as the canonicalisation weight; w_supervised (not
+    # C3DPO: 0) weights the distance to the training split's 3D ground truth.
     c.loss = dict(
         w_reprojection=1.0, w_canonicalization=1.0,
         w_canonicalization_final=ml_collections.config_dict.placeholder(float),
         canonicalization_ramp=(), w_deformation=0.0,
         w_deformation_final=ml_collections.config_dict.placeholder(float), deformation_ramp=(),
-        huber_scaling=0.01, reprojection_normalization="kp_total_count",
+        w_supervised=0.0, huber_scaling=0.01, reprojection_normalization="kp_total_count",
         squared_reprojection_loss=False,
     )
     c.optim = dict(

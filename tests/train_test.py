@@ -386,3 +386,48 @@ def test_results_file_is_replaced_whole_and_a_damaged_one_only_warns(tmp_path, c
     with caplog.at_level("WARNING"):
         assert run_records.read_results(str(tmp_path)) == {}
     assert "eval_results.json cannot be read" in caplog.text
+
+
+def test_supervised_term_is_the_mean_distance_to_the_centred_truth(setup):
+    """With a basis of zeros Phi's shape is one point, so the term is the mean distance of
+    the centred, rescaled truth to its centre (numpy); a shift of the truth changes
+    nothing; the objective adds it with its weight, and the default weight 0 leaves the
+    objective and the metrics as they were."""
+    state, data, _, _ = setup
+    batch = jax.tree.map(lambda a: a[:16], data)
+    train_3d = synthetic.make_split(512, n_keypoints=8, n_modes=2, deformation=0.3,
+                                    occlusion=0.1, noise=0.0, perspective=False, shape_seed=0,
+                                    seed=1).kp3d[:16]
+    layer = {k: v * 0.0 for k, v in state.params["shape_layer"].items()}
+    flat = {**state.params, "shape_layer": layer}
+
+    def run(params, w, kp3d):
+        loss_fn = train.make_loss_fn(CFG, train.LossConfig(w_supervised=w))
+        objective, (_, m) = loss_fn(params, state.batch_stats, dict(batch, kp3d=kp3d),
+                                    jax.random.key(3))
+        return float(objective), m
+
+    truth = train_3d * CFG.keypoint_rescale
+    expected = np.linalg.norm(truth - truth.mean(1, keepdims=True), axis=-1).mean()
+    _, m = run(flat, 1.0, jnp.asarray(train_3d))
+    np.testing.assert_allclose(float(m["loss/supervised"]), expected, rtol=1e-5)
+    shifted = run(flat, 1.0, jnp.asarray(train_3d + np.array([3.0, -2.0, 7.0])))[1]
+    np.testing.assert_allclose(float(shifted["loss/supervised"]), expected, rtol=1e-5)
+    objective, m = run(state.params, 2.5, jnp.asarray(train_3d))
+    np.testing.assert_allclose(objective, float(m["loss/reprojection"]) + float(
+        m["loss/canonicalisation"]) + 2.5 * float(m["loss/supervised"]), rtol=1e-6)
+    off_objective, off = run(state.params, 0.0, jnp.asarray(train_3d))
+    assert "loss/supervised" not in off
+    np.testing.assert_allclose(off_objective, float(m["loss/reprojection"]) + float(
+        m["loss/canonicalisation"]), rtol=1e-6)
+
+
+def test_supervised_training_needs_finite_3d_points_in_the_training_split():
+    data = synthetic.make_split(16, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.1,
+                                noise=0.0, perspective=False, shape_seed=0, seed=1)
+    train._check_data(data, CFG, "train", with_3d=True)
+    for kp3d, what in ((None, "has none"), (np.full_like(data.kp3d, np.nan), "not finite")):
+        bad = KeypointData(kp=data.kp, vis=data.vis, kp3d=kp3d)
+        with pytest.raises(ValueError, match=f"w_supervised > 0 .* {what}"):
+            train._check_data(bad, CFG, "train", with_3d=True)
+        train._check_data(bad, CFG, "train")  # C3DPO itself never needs them

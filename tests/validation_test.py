@@ -259,6 +259,21 @@ def test_test_time_refinement_rules():
         f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})"]
 
 
+def test_supervised_weight_rules():
+    """The 3D ground truth's weight: a number >= 0, enough alone to train, orthographic
+    models only."""
+    c = default.get_config()
+    c.loss.w_reprojection = c.loss.w_canonicalization = 0.0
+    c.loss.w_supervised = 1.0
+    assert validation.config_problems(c) == []
+    c.model.projection_type = "perspective"
+    assert validation.config_problems(c) == [
+        "config.loss.w_supervised=1.0 (must be 0 for a perspective model: orthographic "
+        "models only)"]
+    c.loss.w_supervised = -1.0
+    assert validation.config_problems(c)[0].startswith("config.loss.w_supervised=-1.0 (must be")
+
+
 def test_one_handedness_is_for_orthographic_models_only():
     c = default.get_config()
     c.model.test_time_one_handedness = True
