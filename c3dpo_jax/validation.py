@@ -214,7 +214,7 @@ def _cross_field(cfg: dict) -> list[str]:
         )
     supervised = get("loss.w_supervised")
     if (get("loss.w_reprojection") == 0 and get("loss.w_canonicalization") == 0
-            and supervised in (0, _MISSING)):
+            and not (isinstance(supervised, (int, float)) and supervised > 0)):
         problems.append(
             "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 "
             "(at least one loss weight must be > 0)"

@@ -243,42 +243,37 @@ def test_test_time_turns_rules():
         "'circle_and_range')"]
 
 
-def test_test_time_refinement_rules():
+ORTHOGRAPHIC_ONLY = [
+    ("model.test_time_refine_iters", 20, "0 (no refinement)"),
+    ("model.test_time_one_handedness", True, "False"),
+    ("loss.w_supervised", 1.0, "0"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "off"), ORTHOGRAPHIC_ONLY)
+def test_orthographic_only_settings_are_refused_with_perspective(field, value, off):
     c = default.get_config()
-    c.model.test_time_refine_iters = 20
+    section, name = field.split(".")
+    c[section][name] = value
     assert validation.config_problems(c) == []
     c.model.projection_type = "perspective"
     assert validation.config_problems(c) == [
-        "config.model.test_time_refine_iters=20 (must be 0 (no refinement) for a perspective "
-        "model: orthographic models only)"]
-    c.model.test_time_refine_iters = 0  # the release's perspective models are untouched
+        f"config.{field}={value} (must be {off} for a perspective model: orthographic models "
+        "only)"]
+    c[section][name] = type(value)()  # off: the release's perspective models are untouched
     assert validation.config_problems(c) == []
-    c.model.test_time_refine_iters, c.model.test_time_refine_prior = -1, -0.5
-    assert validation.config_problems(c) == [
-        f"config.model.test_time_refine_iters=-1 (must be {validation.COUNT})",
-        f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})"]
 
 
-def test_supervised_weight_rules():
-    """The 3D ground truth's weight: a number >= 0, enough alone to train, orthographic
-    models only."""
+def test_refinement_and_supervised_weight_ranges():
     c = default.get_config()
     c.loss.w_reprojection = c.loss.w_canonicalization = 0.0
-    c.loss.w_supervised = 1.0
+    c.loss.w_supervised = 1.0  # the truth's term alone is enough to train
     assert validation.config_problems(c) == []
-    c.model.projection_type = "perspective"
-    assert validation.config_problems(c) == [
-        "config.loss.w_supervised=1.0 (must be 0 for a perspective model: orthographic "
-        "models only)"]
+    c.model.test_time_refine_iters, c.model.test_time_refine_prior = -1, -0.5
     c.loss.w_supervised = -1.0
-    assert validation.config_problems(c)[0].startswith("config.loss.w_supervised=-1.0 (must be")
-
-
-def test_one_handedness_is_for_orthographic_models_only():
-    c = default.get_config()
-    c.model.test_time_one_handedness = True
-    assert validation.config_problems(c) == []
-    c.model.projection_type = "perspective"
     assert validation.config_problems(c) == [
-        "config.model.test_time_one_handedness=True (must be False for a perspective model: "
-        "orthographic models only)"]
+        f"config.model.test_time_refine_iters=-1 (must be {validation.COUNT})",
+        f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})",
+        f"config.loss.w_supervised=-1.0 (must be {validation.NON_NEGATIVE})",
+        "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 (at least one "
+        "loss weight must be > 0)"]
