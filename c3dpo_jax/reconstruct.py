@@ -55,7 +55,7 @@ class Reconstruction(NamedTuple):
     kp_reprojected: np.ndarray
 
 
-def _split_path(path: str) -> tuple[str, int | None]:
+def split_path(path: str) -> tuple[str, int | None]:
     """``workdir`` or ``workdir/checkpoints/<step>`` -> (workdir, step or None)."""
     path = os.path.abspath(os.path.expanduser(path))
     if os.path.exists(os.path.join(path, checkpoint.CONFIG_FILE)):
@@ -72,7 +72,7 @@ def _split_path(path: str) -> tuple[str, int | None]:
 
 def load(path: str) -> C3DPOParams:
     """Loads a trained model from a workdir (latest step) or one checkpoint step dir."""
-    workdir, step = _split_path(path)
+    workdir, step = split_path(path)
     config = checkpoint.load_config(workdir)
     if config is None or "model" not in config:
         raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")

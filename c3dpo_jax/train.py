@@ -57,6 +57,7 @@ from c3dpo_jax.inference import (
     predict_split,
 )
 from c3dpo_jax.losses import LossConfig, make_loss_fn
+from c3dpo_jax.reconstruct import load, split_path
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -278,6 +279,19 @@ def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = N
     return config
 
 
+def _start_from(state: TrainState, path: str) -> TrainState:
+    """``state`` with the parameters and BatchNorm statistics of the model at ``path`` (a
+    workdir or one of its checkpoint steps; ``train.init_from``), the optimiser fresh."""
+    source = load(path).variables
+    for name in ("params", "batch_stats"):
+        want = jax.tree.map(jnp.shape, getattr(state, name))
+        if jax.tree.map(jnp.shape, source[name]) != want:
+            raise ValueError(f"config.train.init_from={path!r} holds a model of another "
+                             "architecture (its parameter shapes differ from this config's)")
+    logging.info("parameters from %s", path)
+    return state.replace(params=source["params"], batch_stats=source["batch_stats"])
+
+
 def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
 
@@ -291,7 +305,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     hooks = hooks or Hooks()
     os.makedirs(workdir, exist_ok=True)
     train_data, test_data = load_splits(config.data)
-    config = resolve_input_scale(config, train_data)
+    init_from = config.train.get("init_from") or ""
+    # A run that starts from another's parameters keeps that run's input scale.
+    config = resolve_input_scale(config, train_data, checkpoint.load_config(
+        split_path(init_from)[0]) if init_from else None)
     spec = RunSpec.from_config(config)
     # config.json also records what the training split held, so that resuming on a file
     # edited in place under the same path is refused like a change of settings.
@@ -308,6 +325,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     step, total = int(state.step), spec.total_steps
     if step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
+    elif init_from:
+        state = _start_from(state, init_from)
     run_records.trim_metrics(workdir, step)
     data = device_data.device_train_data(train_data, config.data.class_balanced,
                                          with_3d=spec.loss.w_supervised > 0)

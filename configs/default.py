@@ -89,6 +89,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         eval_batch_size=1024,
         progress_bar=True,
         data_parallel=True,  # split each batch over all devices when there are several
+        init_from="",  # a workdir (or WORKDIR/checkpoints/<step>) whose model starts the run
     )
     return c
 

@@ -431,3 +431,30 @@ def test_supervised_training_needs_finite_3d_points_in_the_training_split():
         with pytest.raises(ValueError, match=f"w_supervised > 0 .* {what}"):
             train._check_data(bad, CFG, "train", with_3d=True)
         train._check_data(bad, CFG, "train")  # C3DPO itself never needs them
+
+
+def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
+    """train.init_from: a new run starts from the source's parameters (at a learning rate of
+    1e-9 they stay), with the source's input scale; a model of another architecture is a
+    one-line error naming the setting."""
+    from c3dpo_jax import checkpoint, load
+    from c3dpo_jax.data import auto_keypoint_rescale, load_splits
+
+    source = str(tmp_path / "source")
+    train.train_and_evaluate(_tiny_config(10), source)
+    c = _tiny_config(1)
+    c.train.init_from = source
+    c.optim.lr = 1e-9
+    c.data.synthetic.seed = 7  # other views: the data alone would give another input scale
+    assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
+    theirs, ours = (load(str(tmp_path / d)).variables for d in ("source", "tuned"))
+    chex.assert_trees_all_close(ours["params"], theirs["params"], atol=1e-6)
+    scales = [checkpoint.load_config(str(tmp_path / d))["model"]["keypoint_rescale"]
+              for d in ("source", "tuned")]
+    assert scales[0] == scales[1]
+    assert auto_keypoint_rescale(load_splits(c.data)[0]) != scales[0]
+    wider = _tiny_config(1)
+    wider.model.n_fully_connected = 48
+    wider.train.init_from = source
+    with pytest.raises(ValueError, match=r"^config.train.init_from=.* another architecture"):
+        train.train_and_evaluate(wider, str(tmp_path / "wider"))
