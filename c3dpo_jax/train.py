@@ -306,9 +306,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     os.makedirs(workdir, exist_ok=True)
     train_data, test_data = load_splits(config.data)
     init_from = config.train.get("init_from") or ""
-    # A run that starts from another's parameters keeps that run's input scale.
-    config = resolve_input_scale(config, train_data, checkpoint.load_config(
-        split_path(init_from)[0]) if init_from else None)
+    # A resumed run keeps its own input scale; one that starts from another run's parameters
+    # takes that run's (only then is the other run read).
+    scale_from = (checkpoint.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
+                  checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
+    config = resolve_input_scale(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
     # config.json also records what the training split held, so that resuming on a file
     # edited in place under the same path is refused like a change of settings.

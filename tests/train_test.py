@@ -1,6 +1,7 @@
 """Train step, chunked loop, optimiser and resume."""
 
 import json
+import shutil
 
 import chex
 import jax
@@ -458,3 +459,5 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
     wider.train.init_from = source
     with pytest.raises(ValueError, match=r"^config.train.init_from=.* another architecture"):
         train.train_and_evaluate(wider, str(tmp_path / "wider"))
+    shutil.rmtree(source)  # a resumed run needs only its own workdir
+    assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
