@@ -431,11 +431,12 @@ def objective(run: str) -> list[float]:
 def _span_fit(shapes: np.ndarray, vectors: np.ndarray, n_iters: int = 10):
     """The best fit to each of ``shapes`` (M, N, 3) in the linear span of ``vectors`` (R, N,
     3; the first a shape the others deform) under a rotation, or a mirror and a rotation,
-    whichever fits a shape better (``_fit_in_span``, from the rotation onto ``vectors[0]``):
-    any scale, any handedness. Returns ``(rows, weights, rotations, signs, error)``: the
-    span's orthonormal rows (R, 3N), each fit's weights on them (M, R), the rotation (M, 3, 3)
-    taking it to ``shapes`` (``fit @ rotation``) mirrored by ``signs`` (M,) on depth, and
-    the mean point distance of each fit (M,)."""
+    whichever fits a shape better (alternately the nearest shape in the span and the best
+    rotation, from the rotation onto ``vectors[0]``): any scale, any handedness. Returns
+    ``(rows, weights, rotations, signs, error)``: the span's orthonormal rows (R, 3N), each
+    fit's weights on them (M, R), the rotation (M, 3, 3) taking it to ``shapes`` (``fit @
+    rotation``) mirrored by ``signs`` (M,) on depth, and the mean point distance of each fit
+    (M,)."""
     truth = _centred(shapes)
     rows = np.linalg.svd(_centred(vectors).reshape(len(vectors), -1),
                          full_matrices=False)[2][:len(vectors)]
