@@ -283,6 +283,11 @@ def _shape(net, params, alpha, class_mask):
     return net.apply({"params": params}, alpha, method="shape") * class_mask[:, None]
 
 
+def _class_centred(x, class_mask):
+    """``x`` (N, C) minus the mean of its class's points, the other points zeroed."""
+    return (x - geometry.masked_mean(x, class_mask)[None]) * class_mask[:, None]
+
+
 def _reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
     """``(proj, depth, dist_sq)``: projection of the camera-frame shape, its depth and
     the squared distance of each projected point to the normalised input."""
@@ -361,11 +366,8 @@ def forward_train(
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
              "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1)}
     if kp3d is not None:
-        def centred(x):
-            return x - geometry.masked_mean(x, class_mask)[None]
-
-        terms["sup_dist_sq"] = jnp.sum(
-            (centred(x_cam) - centred(kp3d * cfg.keypoint_rescale)) ** 2, axis=-1)
+        terms["sup_dist_sq"] = jnp.sum((_class_centred(x_cam, class_mask) - _class_centred(
+            kp3d * cfg.keypoint_rescale, class_mask)) ** 2, axis=-1)
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
             net, params, stats, x_canon, class_mask, rotations.canonicalisation
@@ -466,14 +468,9 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask):
     2D points unchanged), the canonical shape's third axis negated and the rotation
     conjugated by that reflection (``theta``'s first two components negated), so that
     ``scale * x_canon @ rot.T + t`` is still ``x_cam``."""
-    w = class_mask[:, None]
-    n = jnp.maximum(jnp.sum(class_mask), 1.0)
     mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
-
-    def centred(x):
-        return (x - (jnp.sum(x * w, axis=0) / n)[None]) * w
-
-    mirrored = jnp.linalg.det(centred(x_canon).T @ centred(mean)) < 0
+    mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
+                              @ _class_centred(mean, class_mask)) < 0
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F

@@ -137,7 +137,7 @@ def oracle_basis_fit(train_kp3d: np.ndarray, shapes: np.ndarray, n_basis: int,
     in the frame of ``shapes`` (alternately the best shape in the span and the best
     rotation, ``n_iters`` + 1 times, from the rotation onto the Procrustes mean)."""
     mean, mu, basis = _truth_pca(train_kp3d, n_basis)
-    return _fit_in_span(_rotate_onto(shapes, mean), mu, basis, n_iters, shapes)
+    return _rotate_onto(_fit_in_span(_rotate_onto(shapes, mean), mu, basis, n_iters), shapes)
 
 
 def _truth_pca(train_kp3d: np.ndarray, n_basis: int):
@@ -150,16 +150,15 @@ def _truth_pca(train_kp3d: np.ndarray, n_basis: int):
     return mean, mu, np.linalg.svd(aligned - mu, full_matrices=False)[2][:n_basis]
 
 
-def _fit_in_span(x: np.ndarray, offset: np.ndarray, basis: np.ndarray, n_iters: int,
-                 frame: np.ndarray) -> np.ndarray:
+def _fit_in_span(x: np.ndarray, offset, basis: np.ndarray, n_iters: int) -> np.ndarray:
     """The best fit to each of ``x`` (M, N, 3; centred, roughly rotated onto the model) of
     ``offset`` (3N,) plus the span of ``basis``' orthonormal rows, under its best rotation
     (alternately the nearest shape in the span and the best rotation, ``n_iters`` + 1
-    times), rotated onto ``frame`` (M, N, 3)."""
+    times), in the model's frame."""
     for _ in range(n_iters + 1):
         fit = ((x.reshape(len(x), -1) - offset) @ basis.T @ basis + offset).reshape(x.shape)
         x = _rotate_onto(x, fit)
-    return _rotate_onto(fit, frame)
+    return fit
 
 
 def deformation_spread(shapes: np.ndarray, n_iters: int = 5) -> float:
@@ -431,8 +430,8 @@ def objective(run: str) -> list[float]:
 def _span_fit(shapes: np.ndarray, vectors: np.ndarray, n_iters: int = 10):
     """The best fit to each of ``shapes`` (M, N, 3) in the linear span of ``vectors`` (R, N,
     3; the first a shape the others deform) under a rotation, or a mirror and a rotation,
-    whichever fits a shape better (alternately the nearest shape in the span and the best
-    rotation, from the rotation onto ``vectors[0]``): any scale, any handedness. Returns
+    whichever fits a shape better (``_fit_in_span``, from the rotation onto ``vectors[0]``):
+    any scale, any handedness. Returns
     ``(rows, weights, rotations, signs, error)``: the span's orthonormal rows (R, 3N), each
     fit's weights on them (M, R), the rotation (M, 3, 3) taking it to ``shapes`` (``fit @
     rotation``) mirrored by ``signs`` (M,) on depth, and the mean point distance of each fit
@@ -443,11 +442,8 @@ def _span_fit(shapes: np.ndarray, vectors: np.ndarray, n_iters: int = 10):
     best = None
     for sign in (1.0, -1.0):
         x = truth * np.array([1.0, 1.0, sign])
-        canon = _rotate_onto(x, _centred(vectors[:1])[0])
-        for _ in range(n_iters + 1):
-            w = canon.reshape(len(x), -1) @ rows.T
-            canon = _rotate_onto(canon, (w @ rows).reshape(x.shape))
-        fit = (w @ rows).reshape(x.shape)
+        fit = _fit_in_span(_rotate_onto(x, _centred(vectors[:1])[0]), 0.0, rows, n_iters)
+        w = fit.reshape(len(x), -1) @ rows.T
         rot = _rotation_onto(fit, x)
         err = np.linalg.norm(fit @ rot - x, axis=-1).mean(-1)
         if best is None:

@@ -46,7 +46,6 @@ no degradation) and the worst seed's baseline / final ratio (> 1: better than th
 
 import ast
 import glob
-import importlib.util
 import json
 import math
 import os
@@ -139,13 +138,15 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 
 def base_config() -> dict:
-    """``--config``'s config (file and arguments), flattened."""
-    path, _, arg = FLAGS.config.partition(":")
-    spec = importlib.util.spec_from_file_location(
-        "suite_base_config", path if os.path.isabs(path) else os.path.join(ROOT, path))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return _flat(module.get_config(arg or None).to_dict())
+    """``--config``'s config (file and arguments; a relative path from the repository's
+    root, where the runs are made), flattened."""
+    from c3dpo_jax import cli
+
+    path = FLAGS.config.partition(":")[0]
+    rooted = os.path.join(ROOT, FLAGS.config)
+    spec = rooted if not os.path.isabs(path) and os.path.exists(os.path.join(ROOT, path)) \
+        else FLAGS.config
+    return _flat(cli.get_config(spec).to_dict())
 
 
 def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
