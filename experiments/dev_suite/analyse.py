@@ -404,14 +404,20 @@ def spread(run: str) -> list[float]:
 OBJECTIVE_VIEWS = 2000
 
 
+def _training_split_and_views(run: str):
+    """``(training split, up to OBJECTIVE_VIEWS of its views)`` of a suite run (a fixed
+    random choice), and the random generator the choice was drawn from."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
+    rng = np.random.default_rng(0)
+    return train, train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS])), rng
+
+
 def objective(run: str) -> list[float]:
     """On up to ``OBJECTIVE_VIEWS`` training views: the truth's PCA model's 3D and 2D mean
     distances (``oracle_basis_fit``), then the MPJPE and the mean 2D reprojection distance
     of Phi's output (one pass) and of the run's own inference."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
-    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
-    rng = np.random.default_rng(0)
-    views = train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS]))
+    train, views, _ = _training_split_and_views(run)
     truth = _centred(views.kp3d)
     fit = oracle_basis_fit(train.kp3d, truth, FLAGS.n_basis)
     model = c3dpo_jax.load(run)
@@ -492,11 +498,8 @@ def basis(run: str) -> list[float]:
     test views, the test MPJPE and mean 2D distance of the run's inference, and of each
     view's 2D reprojection error minimised in the learnt span (no prior) from two starts:
     the run's own reconstruction and the learnt span's best fit to the truth."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     test, model = _test_split_and_model(run)
-    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
-    pick = np.random.default_rng(0).permutation
-    views = train.kp3d[np.sort(pick(len(train))[:OBJECTIVE_VIEWS])]
+    train, views, rng = _training_split_and_views(run)
     d = model.config.shape_basis_size
     net, params = model_lib.make_network(model.config), model.variables["params"]
     shapes = np.stack([np.asarray(net.apply({"params": params}, a, method="shape"), np.float64)
@@ -505,8 +508,8 @@ def basis(run: str) -> list[float]:
     _, mu, pca = _truth_pca(train.kp3d, d)
     truth = np.concatenate([mu[None], pca]).reshape(d + 1, -1, 3)
     out = [float(_span_fit(x, v)[-1].mean())
-           for x, v in ((test.kp3d, truth), (test.kp3d, learnt), (views, learnt))]
-    sub = test.subset(np.sort(pick(len(test))[:REFIT_VIEWS]))
+           for x, v in ((test.kp3d, truth), (test.kp3d, learnt), (views.kp3d, learnt))]
+    sub = test.subset(np.sort(rng.permutation(len(test))[:REFIT_VIEWS]))
     rec = c3dpo_jax.reconstruct(model, sub.kp, sub.vis)
     out += [evaluation.evaluate(rec.shape_3d, sub)["mpjpe"], float(
         (np.linalg.norm(np.asarray(rec.kp_reprojected) - sub.kp, axis=-1) * sub.vis).sum()
