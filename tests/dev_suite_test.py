@@ -227,3 +227,47 @@ out = [float(err.max()), float(np.abs(back - shapes).max()),
     assert err < 1e-6 and back < 1e-6
     assert rigid_err > 0.05
     assert dist < 1e-6 and refit < 1e-5
+
+
+def test_bone_directions_count_and_undo_bones_turned_in_depth():
+    """analyse.bone_directions on DeepMimic's tree: with the right wrist turned in depth
+    about the elbow (the same 2D points and lengths) in some views and every other view
+    mirrored whole, it counts exactly those bones as pointing the wrong way (of all the deep
+    bones, of the arms', none of the legs' or the rest's), scores the MPJPE of the turned
+    views, and its oracle undoes exactly those turns."""
+    code = """
+import numpy as np
+rng = np.random.default_rng(7)
+parents = analyse.PARENTS['deepmimic']
+m, n = 40, len(parents)
+truth = np.zeros((m, n, 3))
+for j, p in enumerate(parents):
+    if p >= 0:
+        d = rng.normal(size=(m, 3))
+        truth[:, j] = truth[:, p] + d / np.linalg.norm(d, axis=1, keepdims=True)
+dz = truth[:, 17, 2] - truth[:, 16, 2]
+deep = np.stack([np.abs(truth[:, j, 2] - truth[:, p, 2]) >= 0.3 * np.linalg.norm(
+    truth[:, j] - truth[:, p], axis=1) for j, p in enumerate(parents) if p >= 0], 1)
+turn = (np.abs(dz) >= 0.3) & (np.arange(m) % 2 == 0)
+pred = truth.copy()
+pred[turn, 17, 2] -= 2 * dz[turn]
+pred[1::2, :, 2] *= -1.0
+c = lambda x: x - x[:, :, 2:].mean(1, keepdims=True) * np.array([0, 0, 1.0])
+got = analyse.bone_directions(pred, truth, 'deepmimic')
+unmirrored = pred.copy()
+unmirrored[1::2, :, 2] *= -1.0
+want = float(np.linalg.norm(c(unmirrored) - c(truth), axis=-1).mean())
+arms = [13, 14, 16, 17]
+joints = [j for j, p in enumerate(parents) if p >= 0]
+out = [got, want, int(turn.sum()), int(deep.sum()),
+       int(deep[:, [joints.index(j) for j in arms]].sum()), float(turn.mean())]
+"""
+    got, want_mpjpe, n_turned, n_deep, n_deep_arms, turned_share = _suite_value(
+        "analyse", f"(exec({code!r}, globals()), out)[1]")
+    mpjpe, wrong, arms, legs, rest, oracle, turns = got
+    assert n_turned >= 5
+    assert abs(mpjpe - want_mpjpe) < 1e-12 and mpjpe > 0.01
+    assert abs(wrong - n_turned / n_deep) < 1e-12
+    assert abs(arms - n_turned / n_deep_arms) < 1e-12
+    assert legs == 0.0 and rest == 0.0
+    assert oracle < 1e-9 and abs(turns - turned_share) < 1e-12

@@ -80,6 +80,19 @@ up to 500 test views, the run's inference and each view's 2D reprojection error 
 in the learnt span without a prior, from the inference and from the truth's best fit: their
 3D error and 2D distance.
 
+``bones --runs=DIR,DIR,...``: for trained runs of the human sets (deepmimic, cmu131,
+humans), which way the bones point in depth, on the test views: a bone turned towards the
+camera instead of away from it (or the reverse) fits a view's 2D points exactly as well,
+with the same length. The fraction of bones whose depth direction is the truth's opposite
+(among the bones whose depth extent is at least ``BONE_DEPTH_SHARE`` of their length, after
+the view's better overall flip; also of the arms, the legs and the rest), the test MPJPE,
+and the MPJPE after each view's bones are turned (a bone's far end and everything below it
+reflected in depth about its near end), one turn at a time, each the one that brings the
+view nearest the truth, while one does (an oracle: how much of the error is the bones'
+depth directions), with the turns per view. Then the same for the rigid baseline and for
+the truth's PCA basis of 10 fitted to each view's 2D points (``floors``' last column) of
+each dataset.
+
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
 run's: whether their errors are independent (the mean is better) or shared (it is not).
@@ -535,6 +548,110 @@ def handedness(run: str) -> list[float]:
     return out + [float(np.mean(np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))]
 
 
+# Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
+_H36M_PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
+PARENTS = {
+    # pelvis, rhip, rknee, rankle, rtoe, lhip, lknee, lankle, ltoe, spine, neck, head,
+    # lshoulder, lelbow, lwrist, rshoulder, relbow, rwrist
+    "deepmimic": (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 10, 12, 13, 10, 15, 16),
+    "cmu131": _H36M_PARENTS,
+    "humans": _H36M_PARENTS,
+}
+# The bones (by their far joint) of the arms (elbows, wrists) and legs (knees, ankles, toes).
+_H36M_LIMBS = {"arms": (12, 13, 15, 16), "legs": (2, 3, 5, 6)}
+LIMBS = {"deepmimic": {"arms": (13, 14, 16, 17), "legs": (2, 3, 4, 6, 7, 8)},
+         "cmu131": _H36M_LIMBS, "humans": _H36M_LIMBS}
+BONE_DEPTH_SHARE = 0.3
+BONES_COLUMNS = ["MPJPE", "bones pointing the wrong way in depth", "of the arms", "of the legs",
+                 "of the rest", "MPJPE, the oracle's bone turns", "turns per view"]
+
+
+def _descendants(parents, j: int) -> list[int]:
+    """``j`` and every joint below it in the tree ``parents``."""
+    out = [j]
+    for k, p in enumerate(parents):  # a parent comes before its children in these trees
+        if p in out:
+            out.append(k)
+    return out
+
+
+def _view_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Mean point distance per view (M,) of ``pred`` and ``truth`` (M, N, 3), depths centred
+    (all points: the suite's human sets have every point visible)."""
+    ones = np.ones(truth.shape[:2])
+    return np.linalg.norm(evaluation.center_depth(pred, ones)
+                          - evaluation.center_depth(truth, ones), axis=-1).mean(-1)
+
+
+def bone_directions(pred, truth, dataset: str) -> list[float]:
+    """``[MPJPE, fraction of deep bones pointing the wrong way in depth, the same for the
+    arms, the legs and the rest, MPJPE after the oracle's bone turns, turns per view]`` of
+    ``pred`` against ``truth`` (M, N, 3) of ``dataset`` (a key of ``PARENTS``)."""
+    parents = PARENTS[dataset]
+    pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
+    mirrored = pred * np.array([1.0, 1.0, -1.0])
+    pred = np.where((_view_errors(mirrored, truth) < _view_errors(pred, truth))[:, None, None],
+                    mirrored, pred)
+    joints = [j for j, p in enumerate(parents) if p >= 0]
+    dz_true = np.stack([truth[:, j, 2] - truth[:, parents[j], 2] for j in joints], 1)
+    dz = np.stack([pred[:, j, 2] - pred[:, parents[j], 2] for j in joints], 1)
+    length = np.stack([np.linalg.norm(truth[:, j] - truth[:, parents[j]], axis=-1)
+                       for j in joints], 1)
+    deep = np.abs(dz_true) >= BONE_DEPTH_SHARE * length
+    wrong = deep & (np.sign(dz) != np.sign(dz_true))
+    limbs = LIMBS[dataset]
+    groups = [joints, limbs["arms"], limbs["legs"],
+              [j for j in joints if j not in limbs["arms"] + limbs["legs"]]]
+    out = [float(_view_errors(pred, truth).mean())]
+    for group in groups:
+        cols = [joints.index(j) for j in group]
+        out.append(float(wrong[:, cols].sum() / max(deep[:, cols].sum(), 1)))
+    err, turns = _view_errors(pred, truth), np.zeros(len(pred))
+    below = [_descendants(parents, j) for j in joints]
+    for _ in joints:  # each round, per view, the one turn that brings it nearest the truth
+        options = []
+        for j, subtree in zip(joints, below):
+            turned = pred.copy()
+            turned[:, subtree, 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[:, None]
+            options.append((turned, _view_errors(turned, truth)))
+        best = np.argmin(np.stack([e for _, e in options], 1), 1)
+        new = np.stack([e for _, e in options], 1)[np.arange(len(pred)), best]
+        better = new < err - 1e-12
+        if not better.any():
+            break
+        pred[better] = np.stack([t for t, _ in options], 1)[better, best[better]]
+        err[better], turns = new[better], turns + better
+    return out + [float(err.mean()), float(turns.mean())]
+
+
+def _bones_dataset(run: str) -> str:
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    if dataset not in PARENTS:
+        raise app.UsageError(f"{run}: bones needs a run of one of {sorted(PARENTS)}")
+    return dataset
+
+
+def bones(run: str) -> list[float]:
+    """``bone_directions`` of the run's test reconstruction (its own inference)."""
+    test, _, rec = _test_reconstruction(run)
+    return bone_directions(rec.shape_3d, test.kp3d, _bones_dataset(run))
+
+
+def bones_references(dataset: str) -> dict:
+    """``bone_directions`` of the rigid baseline and of the truth's PCA basis of 10 fitted to
+    each test view's 2D points (``floors``), on ``dataset``'s test views."""
+    data_dir = os.path.join(FLAGS.out, "data")
+    train = json_dataset.load(os.path.join(data_dir, f"{dataset}_train.json"))
+    test = json_dataset.load(os.path.join(data_dir, f"{dataset}_test.json"))
+    rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
+                                     test.vis)
+    pca = baselines.fit_shape_basis(baselines.pca_shape_basis(train.kp3d, 10), test.kp,
+                                    test.vis)
+    return {f"{dataset}: {name}": bone_directions(pred, test.kp3d, dataset)
+            for name, pred in (("rigid baseline", rigid),
+                               ("truth's PCA D=10 fitted to the 2D views", pca))}
+
+
 def ensemble() -> list[float]:
     """Each ``--runs`` entry's test MPJPE, then that of ``sign_aligned_mean`` of them all."""
     names = {os.path.basename(os.path.normpath(r)).split("__")[0] for r in FLAGS.runs}
@@ -588,6 +705,7 @@ def _run_tables() -> dict:
                         "no flip", "flip-resolved"], handedness),
         "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
         "signs": (["sign agreement"], sign_agreement),
+        "bones": (BONES_COLUMNS, bones),
     }
 
 
@@ -600,6 +718,10 @@ def main(argv):
                              + " (refine: [--priors=...])")
     if argv[1] in tables:
         _each_run(*tables[argv[1]])
+        if argv[1] == "bones":
+            for dataset in dict.fromkeys(_bones_dataset(r) for r in FLAGS.runs):
+                for name, values in bones_references(dataset).items():
+                    print(f"| {name} | " + " | ".join(f"{v:.4f}" for v in values) + " |")
         return
     if argv[1] == "ensemble":
         values = ensemble()
