@@ -317,7 +317,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))
     checkpoint.check_workdir(workdir, record)
     record["software"] = checkpoint.software_history(workdir)
-    _check_data(train_data, spec.model, "train", with_3d=spec.loss.w_supervised > 0)
+    with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
+    _check_data(train_data, spec.model, "train", with_3d=with_3d)
     _check_data(test_data, spec.model, "test")
     checkpoint.save_config(workdir, record)  # only once every check has passed
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
@@ -330,8 +331,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     elif init_from:
         state = _start_from(state, init_from)
     run_records.trim_metrics(workdir, step)
-    data = device_data.device_train_data(train_data, config.data.class_balanced,
-                                         with_3d=spec.loss.w_supervised > 0)
+    data = device_data.device_train_data(train_data, config.data.class_balanced, with_3d=with_3d)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
