@@ -90,8 +90,8 @@ and the MPJPE after each view's bones are turned (a bone's far end and everythin
 reflected in depth about its near end), one turn at a time, each the one that brings the
 view nearest the truth, while one does (an oracle: how much of the error is the bones'
 depth directions), with the turns per view. Then the same for the rigid baseline and for
-the truth's PCA basis of 10 fitted to each view's 2D points (``floors``' last column) of
-each dataset.
+the truth's PCA basis of ``--n_basis`` vectors fitted to each view's 2D points (``floors``'
+last column) of each dataset.
 
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
@@ -118,7 +118,7 @@ from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's results/runs/...)")
-flags.DEFINE_integer("n_basis", 10, "floors, objective: size of the PCA basis")
+flags.DEFINE_integer("n_basis", 10, "floors, objective, bones: size of the PCA basis")
 flags.DEFINE_list("runs", [], "workdirs of trained runs (every subcommand but floors and clips)")
 flags.DEFINE_list("priors", ["0.3", "1", "3"], "refine: the prior weights scored")
 
@@ -638,18 +638,18 @@ def bones(run: str) -> list[float]:
 
 
 def bones_references(dataset: str) -> dict:
-    """``bone_directions`` of the rigid baseline and of the truth's PCA basis of 10 fitted to
-    each test view's 2D points (``floors``), on ``dataset``'s test views."""
+    """``bone_directions`` of the rigid baseline and of the truth's PCA basis of ``--n_basis``
+    vectors fitted to each test view's 2D points (``floors``), on ``dataset``'s test views."""
     data_dir = os.path.join(FLAGS.out, "data")
     train = json_dataset.load(os.path.join(data_dir, f"{dataset}_train.json"))
     test = json_dataset.load(os.path.join(data_dir, f"{dataset}_test.json"))
     rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
                                      test.vis)
-    pca = baselines.fit_shape_basis(baselines.pca_shape_basis(train.kp3d, 10), test.kp,
-                                    test.vis)
+    pca = baselines.fit_shape_basis(baselines.pca_shape_basis(train.kp3d, FLAGS.n_basis),
+                                    test.kp, test.vis)
     return {f"{dataset}: {name}": bone_directions(pred, test.kp3d, dataset)
             for name, pred in (("rigid baseline", rigid),
-                               ("truth's PCA D=10 fitted to the 2D views", pca))}
+                               (f"truth's PCA D={FLAGS.n_basis} fitted to the 2D views", pca))}
 
 
 def ensemble() -> list[float]:
