@@ -91,7 +91,8 @@ reflected in depth about its near end), one turn at a time, each the one that br
 view nearest the truth, while one does (an oracle: how much of the error is the bones'
 depth directions), with the turns per view. Then the same for the rigid baseline and for
 the truth's PCA basis of ``--n_basis`` vectors fitted to each view's 2D points (``floors``'
-last column) of each dataset.
+last column) of each dataset. ``--training_views``: on up to 2,000 training views instead
+(``objective``'s), without the references.
 
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
@@ -121,6 +122,8 @@ flags.DEFINE_string("run", "", "clips: the workdir of a trained run (suite's res
 flags.DEFINE_integer("n_basis", 10, "floors, objective, bones: size of the PCA basis")
 flags.DEFINE_list("runs", [], "workdirs of trained runs (every subcommand but floors and clips)")
 flags.DEFINE_list("priors", ["0.3", "1", "3"], "refine: the prior weights scored")
+flags.DEFINE_bool("training_views", False, "bones: score up to 2,000 training views instead "
+                  "of the test views (no references)")
 
 
 def _rotation_onto(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -632,9 +635,14 @@ def _bones_dataset(run: str) -> str:
 
 
 def bones(run: str) -> list[float]:
-    """``bone_directions`` of the run's test reconstruction (its own inference)."""
-    test, _, rec = _test_reconstruction(run)
-    return bone_directions(rec.shape_3d, test.kp3d, _bones_dataset(run))
+    """``bone_directions`` of the run's reconstruction (its own inference) of its test views,
+    or with ``--training_views`` of up to ``OBJECTIVE_VIEWS`` of its training views."""
+    if FLAGS.training_views:
+        views = _training_split_and_views(run)[1]
+        rec = c3dpo_jax.reconstruct(c3dpo_jax.load(run), views.kp, views.vis)
+    else:
+        views, _, rec = _test_reconstruction(run)
+    return bone_directions(rec.shape_3d, views.kp3d, _bones_dataset(run))
 
 
 def bones_references(dataset: str) -> dict:
@@ -718,7 +726,7 @@ def main(argv):
                              + " (refine: [--priors=...])")
     if argv[1] in tables:
         _each_run(*tables[argv[1]])
-        if argv[1] == "bones":
+        if argv[1] == "bones" and not FLAGS.training_views:
             for dataset in dict.fromkeys(_bones_dataset(r) for r in FLAGS.runs):
                 for name, values in bones_references(dataset).items():
                     print(f"| {name} | " + " | ".join(f"{v:.4f}" for v in values) + " |")
