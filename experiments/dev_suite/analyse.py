@@ -216,13 +216,26 @@ def floors(name: str, data_dir: str, n_basis: int) -> dict:
     rigid = np.linalg.norm(_rotate_onto(truth, mean) - mean, axis=-1).mean()
     scale, rows, centred, kp_mean = baselines.fit_camera(mean, test.kp, test.vis)
     dist = np.linalg.norm(baselines.project(scale, rows, centred, kp_mean) - test.kp, axis=-1)
-    ppca = baselines.pca_shape_basis(train.kp3d, n_basis)
     return {"rigid mean shape, oracle rotation": float(rigid),
             f"PCA basis D={n_basis}, oracle fit": float(np.linalg.norm(
                 oracle_basis_fit(train.kp3d, truth, n_basis) - truth, axis=-1).mean()),
             "rigid baseline, mean 2D distance": float((dist * test.vis).sum() / test.vis.sum()),
             f"PCA basis D={n_basis}, fitted to the 2D views": evaluation.evaluate(
-                baselines.fit_shape_basis(ppca, test.kp, test.vis), test)["mpjpe"]}
+                _pca_fit_2d(train, test, n_basis), test)["mpjpe"]}
+
+
+def _rigid_fit(train, test) -> np.ndarray:
+    """The rigid baseline on ``test``: the Procrustes mean of ``train``'s 3D shapes under
+    each view's best rigid fit."""
+    return baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
+                                    test.vis)
+
+
+def _pca_fit_2d(train, test, n_basis: int) -> np.ndarray:
+    """The truth's probabilistic PCA of ``n_basis`` vectors (``train``'s 3D shapes) fitted
+    to each of ``test``'s views from its 2D points alone."""
+    return baselines.fit_shape_basis(baselines.pca_shape_basis(train.kp3d, n_basis), test.kp,
+                                     test.vis)
 
 
 def per_clip(run: str) -> list[tuple[str, int, float, float]]:
@@ -242,8 +255,7 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
         raise app.UsageError(f"{run}: the test views do not match {path}'s clips")
     model = c3dpo_jax.load(run)
     pred = c3dpo_jax.reconstruct(model, test.kp, test.vis).shape_3d
-    rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
-                                     test.vis)
+    rigid = _rigid_fit(train, test)
     rows = []
     for c in np.unique(view_clip):
         idx = np.flatnonzero(view_clip == c)
@@ -578,12 +590,12 @@ def _descendants(parents, j: int) -> list[int]:
     return out
 
 
-def _view_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Mean point distance per view (M,) of ``pred`` and ``truth`` (M, N, 3), depths centred
-    (all points: the suite's human sets have every point visible)."""
+def _view_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
+    """``evaluation.mpjpe``'s per-view errors of ``pred`` against ``truth`` (M, N, 3), depths
+    centred over all points (the suite's human sets have every point visible)."""
     ones = np.ones(truth.shape[:2])
-    return np.linalg.norm(evaluation.center_depth(pred, ones)
-                          - evaluation.center_depth(truth, ones), axis=-1).mean(-1)
+    return evaluation.mpjpe(evaluation.center_depth(pred, ones),
+                            evaluation.center_depth(truth, ones), ones)
 
 
 def bone_directions(pred, truth, dataset: str) -> list[float]:
@@ -592,9 +604,9 @@ def bone_directions(pred, truth, dataset: str) -> list[float]:
     ``pred`` against ``truth`` (M, N, 3) of ``dataset`` (a key of ``PARENTS``)."""
     parents = PARENTS[dataset]
     pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
-    mirrored = pred * np.array([1.0, 1.0, -1.0])
-    pred = np.where((_view_errors(mirrored, truth) < _view_errors(pred, truth))[:, None, None],
-                    mirrored, pred)
+    per = _view_errors(pred, truth)
+    pred = np.where((per["mpjpe_flip"] < per["mpjpe_orig"])[:, None, None],
+                    pred * np.array([1.0, 1.0, -1.0]), pred)
     joints = [j for j, p in enumerate(parents) if p >= 0]
     dz_true = np.stack([truth[:, j, 2] - truth[:, parents[j], 2] for j in joints], 1)
     dz = np.stack([pred[:, j, 2] - pred[:, parents[j], 2] for j in joints], 1)
@@ -605,24 +617,24 @@ def bone_directions(pred, truth, dataset: str) -> list[float]:
     limbs = LIMBS[dataset]
     groups = [joints, limbs["arms"], limbs["legs"],
               [j for j in joints if j not in limbs["arms"] + limbs["legs"]]]
-    out = [float(_view_errors(pred, truth).mean())]
+    err, turns = _view_errors(pred, truth)["mpjpe_orig"], np.zeros(len(pred))
+    out = [float(err.mean())]
     for group in groups:
         cols = [joints.index(j) for j in group]
         out.append(float(wrong[:, cols].sum() / max(deep[:, cols].sum(), 1)))
-    err, turns = _view_errors(pred, truth), np.zeros(len(pred))
     below = [_descendants(parents, j) for j in joints]
     for _ in joints:  # each round, per view, the one turn that brings it nearest the truth
-        options = []
-        for j, subtree in zip(joints, below):
-            turned = pred.copy()
-            turned[:, subtree, 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[:, None]
-            options.append((turned, _view_errors(turned, truth)))
-        best = np.argmin(np.stack([e for _, e in options], 1), 1)
-        new = np.stack([e for _, e in options], 1)[np.arange(len(pred)), best]
+        turned = np.repeat(pred[:, None], len(joints), 1)  # (M, bones, N, 3)
+        for b, (j, subtree) in enumerate(zip(joints, below)):
+            turned[:, b, subtree, 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[:, None]
+        errs = _view_errors(turned.reshape(-1, *pred.shape[1:]), np.repeat(
+            truth, len(joints), 0))["mpjpe_orig"].reshape(len(pred), len(joints))
+        best = np.argmin(errs, 1)
+        new = errs[np.arange(len(pred)), best]
         better = new < err - 1e-12
         if not better.any():
             break
-        pred[better] = np.stack([t for t, _ in options], 1)[better, best[better]]
+        pred[better] = turned[better, best[better]]
         err[better], turns = new[better], turns + better
     return out + [float(err.mean()), float(turns.mean())]
 
@@ -651,13 +663,10 @@ def bones_references(dataset: str) -> dict:
     data_dir = os.path.join(FLAGS.out, "data")
     train = json_dataset.load(os.path.join(data_dir, f"{dataset}_train.json"))
     test = json_dataset.load(os.path.join(data_dir, f"{dataset}_test.json"))
-    rigid = baselines.fit_mean_shape(baselines.procrustes_mean_shape(train.kp3d), test.kp,
-                                     test.vis)
-    pca = baselines.fit_shape_basis(baselines.pca_shape_basis(train.kp3d, FLAGS.n_basis),
-                                    test.kp, test.vis)
     return {f"{dataset}: {name}": bone_directions(pred, test.kp3d, dataset)
-            for name, pred in (("rigid baseline", rigid),
-                               (f"truth's PCA D={FLAGS.n_basis} fitted to the 2D views", pca))}
+            for name, pred in (("rigid baseline", _rigid_fit(train, test)),
+                               (f"truth's PCA D={FLAGS.n_basis} fitted to the 2D views",
+                                _pca_fit_2d(train, test, FLAGS.n_basis)))}
 
 
 def ensemble() -> list[float]:
