@@ -6,7 +6,12 @@ Run: ``python -m c3dpo_jax.main --config=configs/default.py --workdir=/tmp/c3dpo
          checks that everything runs;
   base   C3DPO-base (reprojection loss only: no equivariance, no Psi);
   equiv  C3DPO-equiv (+ in-plane equivariance, no Psi);
-  full   C3DPO (the default: + canonicalisation network Psi).
+  full   C3DPO (the default: + canonicalisation network Psi);
+  supervised
+         the same networks trained with the 3D ground truth instead of C3DPO's losses
+         (``loss.w_supervised=1``, every other weight 0, no Psi, Phi's own output at
+         inference): a reference for what the views allow, not C3DPO; the training split
+         needs its 3D points (``kp_loc_3d``).
 """
 
 import dataclasses
@@ -15,7 +20,7 @@ import ml_collections
 
 from c3dpo_jax.model import ModelConfig
 
-VARIANTS = ("smoke", "base", "equiv", "full")
+VARIANTS = ("smoke", "base", "equiv", "full", "supervised")
 
 
 def parse_args(arg: str | None) -> set[str]:
@@ -127,8 +132,17 @@ def cpu_recipe(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
 
 
 def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collections.ConfigDict:
-    """Applies the ``:smoke``, ``:base``, ``:equiv`` words (see the module docstring)."""
+    """Applies the ``:smoke``, ``:base``, ``:equiv``, ``:supervised`` words (see the module
+    docstring)."""
     words = parse_args(arg)
+    if "supervised" in words:
+        c.loss.w_supervised = 1.0
+        for term in ("reprojection", "canonicalization", "deformation"):
+            c.loss[f"w_{term}"] = 0.0
+        for term in ("canonicalization", "deformation"):  # no ramps: constant weights
+            c.loss[f"w_{term}_final"], c.loss[f"{term}_ramp"] = None, ()
+        c.model.canonicalization = False
+        c.model.test_time_refine_iters = 0
     if "base" in words:
         c.model.z_equivariance = False
         c.model.canonicalization = False

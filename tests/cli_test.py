@@ -180,4 +180,4 @@ def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_
     assert bad_variant.returncode == 2
     assert bad_variant.stderr.startswith("error: flag --config=") and bad_variant.stderr.endswith(
         "ValueError: unknown config variant(s) ['smok']; known: ('smoke', 'base', 'equiv', "
-        "'full')\n")
+        "'full', 'supervised')\n")

@@ -121,23 +121,34 @@ def test_timed_run_stops_at_its_budget_and_measures_its_rate(tmp_path):
                                point["t"], rtol=1e-6)
 
 
-def test_supervised_lifter_learns_depth_from_3d_ground_truth(tmp_path):
+def test_supervised_reference_trains_the_same_networks_with_the_3d_truth(tmp_path):
     seq, out = str(tmp_path / "wave.npz"), str(tmp_path / "results")
     _sequence(seq)
-    common = [f"--dataset={seq}", "--views_per_frame=2", f"--out_dir={out}"]
-    subprocess.run([sys.executable, os.path.join(EXP, "supervised.py"), *common, "--width=32",
-                    "--blocks=1", "--batch_size=16", "--steps=400", "--evals=2"],
+    common = [sys.executable, os.path.join(EXP, "run.py"), f"--dataset={seq}",
+              "--views_per_frame=2", f"--out_dir={out}", "--eval_every_s=1000"]
+    tiny = [f"--set={s}" for s in TINY]
+    subprocess.run([*common, "--supervised", "--set=train.num_steps=400", *tiny],
                    check=True, capture_output=True, cwd=str(tmp_path))
-    subprocess.run([sys.executable, os.path.join(EXP, "run.py"), *common, "--baselines_only"],
-                   check=True, capture_output=True, cwd=str(tmp_path))
-    with open(os.path.join(out, "supervised", "wave__s0.json")) as f:
+    subprocess.run([*common, "--set=train.num_steps=10", *tiny], check=True,
+                   capture_output=True, cwd=str(tmp_path))
+    with open(os.path.join(out, "wave__cpu_supervised__s0.json")) as f:
         result = json.load(f)
-    with open(os.path.join(out, "baselines", "wave.json")) as f:
-        base = json.load(f)["baselines"]
-    assert [p["step"] for p in result["curve"]] == [200, 400]
-    assert result["mpjpe"] == result["curve"][-1]["mpjpe"]
-    # With 3D ground truth the lifter is far better than no depth at all.
-    assert result["mpjpe"] < 0.5 * base["zero depth"]
+    loss, model = result["config"]["loss"], result["config"]["model"]
+    assert result["recipe"] == "cpu_supervised" and result["ended"]
+    assert (loss["w_supervised"], loss["w_reprojection"], loss["w_canonicalization"]) == (1, 0, 0)
+    assert not model["canonicalization"] and model["n_fully_connected"] == 32
+    final = result["curve"][-1]["mpjpe"]
+    # With 3D ground truth the network is far better than no depth at all.
+    assert final < 0.5 * result["baselines"]["zero depth"]
+
+    report = subprocess.run([sys.executable, os.path.join(EXP, "report.py"), f"--results={out}",
+                             "--at=1"], check=True, capture_output=True, text=True)
+    head, _, row = report.stdout.splitlines()[:3]
+    columns = [c.strip() for c in head.strip("|").split("|")]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    # A reference, not a recipe: its runs have no columns of their own.
+    assert [c for c in columns if c.endswith(" min")] == ["cpu 0.0166667 min"]
+    assert cells[columns.index("same network, 3D truth")] == f"{final:.3f}"
 
 
 def _diagnose_module():

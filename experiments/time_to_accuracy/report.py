@@ -4,9 +4,9 @@
 
 Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the number
 of seeds in brackets when more than one; the baselines, from the runs or from
-``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); supervised.py's lifter
-when ``DIR/supervised/`` has runs; the ratio of the fitted mean shape to the cpu recipe
-at the last budget) and writes ``DIR/curves.png`` (MPJPE against wall time, one panel
+``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); the final error of the same
+networks trained with the 3D ground truth, when there are ``cpu_supervised`` runs (run.py
+``--supervised``); the ratio of the fitted mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png`` (MPJPE against wall time, one panel
 per dataset).
 """
 
@@ -43,13 +43,16 @@ def baselines_by_dataset(runs: list[dict], results_dir: str) -> dict[str, dict]:
     return out
 
 
-def supervised_by_dataset(results_dir: str) -> dict[str, list[float]]:
-    """Final test MPJPE of supervised.py's runs (``supervised/DATASET__sSEED.json``)."""
+SUPERVISED = "cpu_supervised"  # run.py --supervised: the cpu recipe's networks, 3D truth
+SUPERVISED_LABEL = "same network, 3D truth"
+
+
+def supervised_by_dataset(runs: list[dict]) -> dict[str, list[float]]:
+    """Final test MPJPE of each dataset's ``cpu_supervised`` runs (run.py ``--supervised``)."""
     out = collections.defaultdict(list)
-    for path in sorted(glob.glob(os.path.join(results_dir, "supervised", "*.json"))):
-        with open(path) as f:
-            r = json.load(f)
-        out[r["dataset"]].append(r["mpjpe"])
+    for r in runs:
+        if r["recipe"] == SUPERVISED:
+            out[r["dataset"]].append(r["curve"][-1]["mpjpe"])
     return out
 
 
@@ -81,7 +84,7 @@ def table(runs: list[dict], at: list[float], recipes: list[str], base: dict,
         by[(r["dataset"], r["recipe"])].append(r)
     datasets = sorted({r["dataset"] for r in runs})
     head = ["dataset"] + [f"{rec} {t / 60:g} min" for rec in recipes for t in at]
-    head += list(BASELINES) + ["supervised lifter"] * bool(supervised)
+    head += list(BASELINES) + [SUPERVISED_LABEL] * bool(supervised)
     head += [f"fitted mean / {recipes[0]} ({at[-1] / 60:g} min)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for d in datasets:
@@ -106,7 +109,7 @@ def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = No
     colours = {}
     for ax, d in zip(axes.flat, datasets):
         labelled = set()  # one legend entry per recipe, however many seeds
-        for r in (r for r in runs if r["dataset"] == d):
+        for r in (r for r in runs if r["dataset"] == d and r["recipe"] != SUPERVISED):
             colour = colours.setdefault(r["recipe"], f"C{len(colours)}")
             label = None if r["recipe"] in labelled else r["recipe"]
             labelled.add(r["recipe"])
@@ -118,7 +121,7 @@ def figure(runs: list[dict], path: str, base: dict, supervised: dict | None = No
                 ax.axhline(base[d][name], color=colour, linestyle=style, label=name)
         if supervised.get(d):
             ax.axhline(np.mean(supervised[d]), color="C2", linestyle="--",
-                       label="supervised lifter")
+                       label=SUPERVISED_LABEL)
         ax.set_title(d)
         ax.set_yscale("log")
         ax.set_xlabel("training wall time (min)")
@@ -163,7 +166,7 @@ def main() -> None:
     at = [float(t) for t in args.at.split(",")]
     recipes = [r for r in args.recipes.split(",") if any(x["recipe"] == r for x in runs)]
     base = baselines_by_dataset(runs, args.results)
-    supervised = supervised_by_dataset(args.results)
+    supervised = supervised_by_dataset(runs)
     print(table(runs, at, recipes, base, supervised))
     figure(runs, os.path.join(args.results, "curves.png"), base, supervised)
     print(f"figure: {os.path.join(args.results, 'curves.png')}")

@@ -18,7 +18,11 @@ stretch, yoga; not distributed with the repository, looked up in ``NRSFM_DIR``) 
 into the run's folder. Recipes: ``cpu`` (the library default: ``configs.default.cpu_recipe``;
 for ``humans`` configs/humans.py, which sets its own canonicalisation weight) and
 ``official`` (the release's h36m-style settings: 1024-wide 6-block trunks, SGD lr 1e-3,
-momentum 0.9, weight decay 5e-4, batch 256).
+momentum 0.9, weight decay 5e-4, batch 256). With ``--supervised`` a recipe trains the same
+networks with the 3D ground truth instead of C3DPO's losses (recipe ``cpu_supervised``: the
+reference with 3D supervision in report.py's table)::
+
+  python experiments/time_to_accuracy/run.py --dataset=face --supervised
 
 Timed mode (the default): training stops at the first chunk where the loop's clock reaches
 the budget, or where the recipe ends (the CLI's run: ``train.num_steps`` or its epochs), if
@@ -75,6 +79,9 @@ flags.DEFINE_float("compile_s", 0.0, "replay mode: calibrated compile seconds")
 flags.DEFINE_string("out_dir", os.path.join(HERE, "results"), "where results go")
 flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE (e.g. optim.lr=1e-3)")
 flags.DEFINE_string("tag", "", "suffix of the recipe name in the results (search runs)")
+flags.DEFINE_bool("supervised", False, "train the same networks with the 3D ground truth "
+                  "instead of C3DPO's losses (configs/default.py's 'supervised' variant: the "
+                  "reference with 3D supervision); the recipe's name gets '_supervised'")
 flags.DEFINE_bool("baselines_only", False, "only score the baselines (see baselines_only())")
 flags.DEFINE_string("save_variables", "", "also write the final model variables here "
                     "(flax msgpack; read with flax.serialization.msgpack_restore)")
@@ -115,6 +122,12 @@ def load_dataset(name: str, views_per_frame: int, cameras: str, seed: int):
     return train_data, test_data, "default"
 
 
+def recipe_name() -> str:
+    """The recipe's name in the results: ``--recipe``, ``_supervised`` with
+    ``--supervised``, then ``--tag``."""
+    return FLAGS.recipe + "_supervised" * FLAGS.supervised + FLAGS.tag
+
+
 def recipe_config(recipe: str, dataset: str, n_keypoints: int, protocol: str):
     if recipe == "official":  # the release's h36m settings at batch 256
         c = release.release_config(
@@ -125,6 +138,8 @@ def recipe_config(recipe: str, dataset: str, n_keypoints: int, protocol: str):
         c = humans_config.get_config()
     else:
         c = default.cpu_recipe(default.get_config())
+    if FLAGS.supervised:
+        default.apply_variants(c, "supervised")
     c.model.n_keypoints = n_keypoints
     c.data.protocol = protocol
     return _override(c, FLAGS.set)
@@ -186,7 +201,7 @@ def run() -> dict:
     ``OUT_DIR/runs/DATASET__RECIPE__sSEED`` (resumable); returns the result record."""
     train_data, test_data, protocol = load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
-    name, recipe = dataset_name(FLAGS.dataset), FLAGS.recipe + FLAGS.tag
+    name, recipe = dataset_name(FLAGS.dataset), recipe_name()
     c = recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
     workdir = os.path.join(FLAGS.out_dir, "runs", f"{name}__{recipe}__s{FLAGS.seed}")
     c.data.train_path, c.data.test_path = _views(train_data, test_data, workdir)
