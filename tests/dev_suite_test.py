@@ -271,3 +271,42 @@ out = [got, want, int(turn.sum()), int(deep.sum()),
     assert abs(arms - n_turned / n_deep_arms) < 1e-12
     assert legs == 0.0 and rest == 0.0
     assert oracle < 1e-9 and abs(turns - turned_share) < 1e-12
+
+
+def test_relift_prefers_the_shapes_a_lifter_sees_from_every_side():
+    """analyse.relift_choice with an exact lifter of one rigid body (the rigid fit of the
+    body to the 2D points, which recovers noiseless views exactly): the truth is perfectly
+    self-consistent, a view with the right wrist turned in depth is not, so exactly the
+    turned views count as "truth more consistent", and taking each view's most consistent
+    single turn undoes those turns, as the oracle does."""
+    code = """
+import numpy as np
+from scipy.spatial.transform import Rotation
+from c3dpo_jax import baselines
+rng = np.random.default_rng(3)
+parents = analyse.PARENTS['deepmimic']
+n, m = len(parents), 30
+body = np.zeros((n, 3))
+for j, p in enumerate(parents):
+    if p >= 0:
+        d = rng.normal(size=3)
+        body[j] = body[p] + d / np.linalg.norm(d)
+body -= body.mean(0)
+truth = np.einsum('mij,nj->mni', Rotation.random(m, random_state=4).as_matrix(), body)
+dz = truth[:, 17, 2] - truth[:, 16, 2]
+turn = (np.abs(dz) >= 0.3) & (np.arange(m) % 3 > 0)
+pred = truth.copy()
+pred[turn, 17, 2] -= 2 * dz[turn]
+pred[::2, :, 2] *= -1.0
+lift = lambda kp: baselines.fit_mean_shape(body, kp, np.ones(kp.shape[:2]))
+out = [analyse.relift_choice(lift, pred, truth, 'deepmimic'), float(turn.mean()),
+       float(analyse.relift_inconsistency(lift, truth).max())]
+"""
+    got, turned_share, truth_inconsistency = _suite_value(
+        "analyse", f"(exec({code!r}, globals()), out)[1]")
+    mpjpe, truer, own, true, picked, views_turned, oracle, agree = got
+    assert turned_share >= 0.2 and truth_inconsistency < 1e-6
+    assert mpjpe > 0.01 and own > 0.01 and true < 1e-6
+    assert abs(truer - turned_share) < 1e-12
+    assert picked < 1e-6 and oracle < 1e-6 and agree == 1.0
+    assert abs(views_turned - turned_share) < 1e-12

@@ -94,6 +94,15 @@ the truth's PCA basis of ``--n_basis`` vectors fitted to each view's 2D points (
 last column) of each dataset. ``--training_views``: on up to 2,000 training views instead
 (``objective``'s), without the references.
 
+``relift --runs=DIR,DIR,...``: for trained runs of the human sets, can the network's own
+view of a reconstruction from the side tell which way its bones point? Each candidate shape
+(the prediction, the prediction with one bone turned as ``bones`` turns them, the truth's
+depth under the prediction's x, y) is turned about the camera's vertical axis by
+``RELIFT_AZIMUTHS``, projected and lifted again by the network in one pass; a candidate is
+the more self-consistent the nearer the re-lifted depths are to its own turned ones. The
+share of views whose truth is more consistent than the prediction, and the MPJPE when each
+view takes its most consistent candidate, beside the oracle's choice among the same ones.
+
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
 run's: whether their errors are independent (the mean is better) or shared (it is not).
@@ -669,6 +678,81 @@ def bones_references(dataset: str) -> dict:
                                 _pca_fit_2d(train, test, FLAGS.n_basis)))}
 
 
+RELIFT_AZIMUTHS = (-60.0, -30.0, 30.0, 60.0)  # degrees about the camera's vertical axis
+RELIFT_COLUMNS = ["MPJPE", "truth's depth more self-consistent", "inconsistency: prediction",
+                  "truth's depth", "MPJPE, most self-consistent single turn", "views turned",
+                  "MPJPE, the oracle's single turn", "same choice as the oracle"]
+
+
+def _about_vertical(degrees: float) -> np.ndarray:
+    a = np.deg2rad(degrees)
+    return np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+
+
+def relift_inconsistency(lift, shapes: np.ndarray, azimuths=RELIFT_AZIMUTHS) -> np.ndarray:
+    """(M,) how far ``lift`` ((M, N, 2) views -> (M, N, 3)) is from reproducing each of
+    ``shapes`` (M, N, 3, every point visible) seen from the side: the shape turned about the
+    camera's vertical axis by each azimuth and projected, the mean absolute difference of the
+    lift's depths to the turned shape's (both centred; the better of the lift and its depth
+    flip), averaged over the azimuths. 0 when the lifter sees the shape as it is from every
+    one of those sides."""
+    x = shapes - shapes.mean(1, keepdims=True)
+    out = []
+    for a in azimuths:
+        turned = x @ _about_vertical(a).T
+        z = np.asarray(lift(turned[..., :2]), np.float64)[..., 2]
+        z = z - z.mean(1, keepdims=True)
+        out.append(np.minimum(np.abs(z - turned[..., 2]).mean(1),
+                              np.abs(z + turned[..., 2]).mean(1)))
+    return np.mean(out, 0)
+
+
+def relift_choice(lift, pred, truth, dataset: str) -> list[float]:
+    """``RELIFT_COLUMNS`` for the predictions ``pred`` of views whose 3D truth is ``truth``
+    (M, N, 3, every point visible) of ``dataset`` (a key of ``PARENTS``): can the lifter's own
+    view of a shape from the side (``relift_inconsistency``) tell which way its bones point?
+    The share of views whose truth (depth only: the prediction's x, y, the truth's depth with
+    the prediction's overall flip) is more consistent than the prediction itself, the mean
+    inconsistency of both; the MPJPE when each view takes the most consistent of the
+    prediction and its single bone turns (``bone_directions``' turns) with the share of views
+    turned; the MPJPE of the oracle's choice among the same candidates, and how often the two
+    choices agree."""
+    parents = PARENTS[dataset]
+    pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
+    per = _view_errors(pred, truth)
+    flipped = (per["mpjpe_flip"] < per["mpjpe_orig"])[:, None]
+    truth_depth = np.concatenate([pred[..., :2], np.where(flipped, -1.0, 1.0)[..., None]
+                                  * truth[..., 2:]], -1)
+    candidates = [pred]
+    for j in (j for j, p in enumerate(parents) if p >= 0):
+        turned = pred.copy()
+        turned[:, _descendants(parents, j), 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[
+            :, None]
+        candidates.append(turned)
+    scores = np.stack([relift_inconsistency(lift, c) for c in candidates])  # (1 + bones, M)
+    errors = np.stack([np.minimum(*(_view_errors(c, truth)[k] for k in ("mpjpe_orig",
+                                                                       "mpjpe_flip")))
+                       for c in candidates])
+    rows = np.arange(len(pred))
+    pick, oracle = np.argmin(scores, 0), np.argmin(errors, 0)
+    own, true = scores[0], relift_inconsistency(lift, truth_depth)
+    return [float(errors[0].mean()), float(np.mean(true < own)), float(own.mean()),
+            float(true.mean()), float(errors[pick, rows].mean()), float(np.mean(pick > 0)),
+            float(errors[oracle, rows].mean()), float(np.mean(pick == oracle))]
+
+
+def relift(run: str) -> list[float]:
+    """``relift_choice`` of the run's test views, its inference (the run's own) lifting the
+    views seen from the side in one pass (Phi's output: no turned copies, no refinement)."""
+    test, model, rec = _test_reconstruction(run)
+
+    def lift(kp):
+        return c3dpo_jax.reconstruct(model, kp.astype(np.float32), np.ones(kp.shape[:2],
+                                     np.float32), turns=1, refine_iters=0).shape_3d
+
+    return relift_choice(lift, rec.shape_3d, test.kp3d, _bones_dataset(run))
+
+
 def ensemble() -> list[float]:
     """Each ``--runs`` entry's test MPJPE, then that of ``sign_aligned_mean`` of them all."""
     names = {os.path.basename(os.path.normpath(r)).split("__")[0] for r in FLAGS.runs}
@@ -723,6 +807,7 @@ def _run_tables() -> dict:
         "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
         "signs": (["sign agreement"], sign_agreement),
         "bones": (BONES_COLUMNS, bones),
+        "relift": (RELIFT_COLUMNS, relift),
     }
 
 
