@@ -145,12 +145,19 @@ def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool 
     if problem is not None:
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
         return None
+    # A reader of its own for each step: orbax's manager fixes how it reads its steps
+    # (one item or several) from the first one it reads, so a damaged step folder read
+    # first would make every intact one after it unreadable to the same manager.
+    reader = ocp.CheckpointManager(manager.directory,
+                                   options=ocp.CheckpointManagerOptions(read_only=True))
     try:
-        state = manager.restore(step, args=_restore_args(template, subtree))
+        state = reader.restore(step, args=_restore_args(template, subtree))
     except Exception as err:  # noqa: BLE001 (orbax raises many types for damaged files)
         problem = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
         return None
+    finally:
+        reader.close()
     leaves = [np.asarray(x) for x in jax.tree.leaves(state)]
     if not all(np.all(np.isfinite(x)) for x in leaves if np.issubdtype(x.dtype, np.floating)):
         logging.warning("checkpoint %s/%d holds NaN or inf", manager.directory, step)
@@ -258,11 +265,11 @@ def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
     return json.loads(json.dumps(ident, default=list))  # tuples as JSON lists
 
 
-def _differences(saved: Any, new: Any, path: str = "") -> list[str]:
+def differences(saved: Any, new: Any, path: str = "") -> list[str]:
     """``section.field: A in the checkpoint's run, B now`` for every field both have."""
     if isinstance(saved, dict) and isinstance(new, dict):
         return [d for k in sorted(set(saved) & set(new))
-                for d in _differences(saved[k], new[k], f"{path}.{k}" if path else k)]
+                for d in differences(saved[k], new[k], f"{path}.{k}" if path else k)]
     return [] if saved == new else [f"{path}: {saved!r} in the checkpoint's run, {new!r} now"]
 
 
@@ -280,7 +287,7 @@ def check_workdir(workdir: str, config: dict[str, Any]) -> None:
     saved = load_config(workdir)
     if saved is None or not has_checkpoint(workdir):
         return
-    diffs = _differences(_run_identity(saved), _run_identity(config))
+    diffs = differences(_run_identity(saved), _run_identity(config))
     if diffs:
         more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise ValueError(
@@ -308,6 +315,10 @@ def restore_latest(workdir: str, template, step: int | None = None, subtree: boo
             if state is None:
                 raise FileNotFoundError(f"no checkpoint found under {workdir}/{CHECKPOINT_DIR}")
         else:
+            steps = sorted(manager.all_steps())
+            if step not in steps:
+                raise FileNotFoundError(f"no checkpoint {step} under {workdir}/{CHECKPOINT_DIR} "
+                                        f"(its steps: {steps})")
             state = _restore(manager, step, template, subtree)
             if state is None:
                 raise ValueError(f"checkpoint {step} under {workdir}/{CHECKPOINT_DIR} cannot be "

@@ -1,6 +1,7 @@
 """Checkpoints: a damaged newest checkpoint is skipped for the newest intact one."""
 
 import os
+import shutil
 
 import jax.numpy as jnp
 import numpy as np
@@ -33,13 +34,20 @@ TEMPLATE = {"w": jnp.zeros((64, 64)), "n": jnp.int32(0)}
 # A failed read leaves orbax's asynchronous readers un-awaited; Python reports them as
 # unraisable exceptions when they are collected, which is not what these tests are about.
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-@pytest.mark.parametrize("damage", ["delete_data", "truncate_data", "empty_folder"])
+@pytest.mark.parametrize("damage", ["delete_data", "truncate_data", "empty_folder",
+                                    "item_folder_gone", "bare_step_folder"])
 def test_a_damaged_newest_checkpoint_is_skipped_for_the_previous_one(tmp_path, damage, caplog):
     ckpts = _save_three(str(tmp_path))
     newest = os.path.join(ckpts, "3")
     if damage == "empty_folder":  # e.g. a kill during max_to_keep's clean-up
         for path in _files(newest):
             os.remove(path)
+    elif damage == "item_folder_gone":  # the saved tree's folder and the record deleted
+        shutil.rmtree(os.path.join(newest, "default"))
+        os.remove(os.path.join(newest, checkpoint.CHECKSUM_FILE))
+    elif damage == "bare_step_folder":  # a step folder holding nothing at all
+        shutil.rmtree(newest)
+        os.makedirs(newest)
     else:
         biggest = _files(newest)[-1]  # the array data
         if damage == "delete_data":
@@ -56,6 +64,9 @@ def test_a_damaged_newest_checkpoint_is_skipped_for_the_previous_one(tmp_path, d
     manager.close()
     with pytest.raises(ValueError, match="checkpoint 3 .* cannot be read"):
         checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=3)
+    with pytest.raises(FileNotFoundError,
+                       match=r"no checkpoint 9 under .* \(its steps: \[1, 2, 3\]\)"):
+        checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=9)
 
 
 def test_non_finite_values_are_not_restored_and_no_intact_checkpoint_is_an_error(tmp_path):
