@@ -24,8 +24,9 @@ from absl import app, flags, logging
 from tqdm import tqdm
 
 # What input the user got wrong (json.JSONDecodeError and UnicodeDecodeError are ValueErrors;
-# OSError covers missing, unreadable and unwritable files).
-USER_ERRORS = (OSError, ValueError, KeyError)
+# OSError covers missing, unreadable and unwritable files; FloatingPointError is a run whose
+# loss diverged, e.g. at too high a learning rate).
+USER_ERRORS = (OSError, ValueError, KeyError, FloatingPointError)
 
 # INFO records from other packages are chatter: orbax logs dozens of lines per checkpoint,
 # JAX "Unable to initialize backend 'tpu'" on every CPU run, matplotlib its writers.

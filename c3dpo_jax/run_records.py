@@ -38,7 +38,10 @@ class MetricsWriter:
         if bad.size:
             at = first_step + int(bad[0])
             values = {k: float(v[bad[0]]) for k, v in metrics.items()}
-            raise FloatingPointError(f"loss is not finite at step {at}: {values}")
+            shown = ", ".join(f"{k} {v:.4g}" for k, v in values.items())
+            raise FloatingPointError(
+                f"loss is not finite at step {at} ({shown}); training stopped, its last "
+                "checkpoint kept: a lower --config.optim.lr, or a look at the data, usually helps")
         now = time.perf_counter()
         record = {k: float(np.mean(v)) for k, v in metrics.items()}
         record.update(step=first_step + n, steps_per_s=n / max(now - self.last_time, 1e-9))

@@ -27,6 +27,7 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 
 import dataclasses
 import importlib.util
+import json
 import os
 import signal
 import sys
@@ -241,18 +242,28 @@ class Interrupted(Exception):
 
 class _StopSignals:
     """While active, SIGINT (Ctrl-C) and SIGTERM only record that a stop was asked for, so
-    the loop can finish its chunk, checkpoint and stop; a second signal acts as usual. Only
-    in the main thread (elsewhere signals cannot be caught)."""
+    the loop can finish its chunk, checkpoint and stop. A second signal within
+    ``REPEAT_S`` of the first is the same request delivered twice (``timeout`` and batch
+    schedulers signal the process and then its process group) and is ignored; a later one
+    acts as usual (Ctrl-C twice: a traceback now). Only in the main thread (elsewhere
+    signals cannot be caught)."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    REPEAT_S = 1.0
 
     def __init__(self):
-        self.received, self.previous = None, {}
+        self.received, self.received_at, self.previous = None, 0.0, {}
 
     def _handle(self, signum, frame):
-        self.received = signum
-        for sig, handler in self.previous.items():  # a second signal: the usual behaviour
+        now = time.monotonic()
+        if self.received is None:
+            self.received, self.received_at = signum, now
+            return
+        if now - self.received_at < self.REPEAT_S:
+            return
+        for sig, handler in self.previous.items():  # the usual behaviour, for this one too
             signal.signal(sig, handler)
+        signal.raise_signal(signum)
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
@@ -351,51 +362,61 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar)
+
+    def close() -> None:
+        """Ends the bar (before any message) and finishes and seals the saves in flight."""
+        pbar.close()
+        manager.wait_until_finished()
+        manager.close()
+
     tic = time.perf_counter()
-    with _StopSignals() as signals:
-        while step < total:
-            stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
-                                            spec.eval_every))
-            state, metrics = chunk(state, data, train_key, n_steps=stop - step)
-            writer.push(step, metrics)
-            step = stop
-            if hooks.after_chunk is not None:
-                hooks.after_chunk(step, state)
-            clock = train_s + time.perf_counter() - tic
-            stopping = signals.received is not None or (
-                hooks.should_stop is not None and hooks.should_stop(step, clock))
-            evaluating = step < total and signals.received is None and (
-                (spec.eval_every and step % spec.eval_every == 0)
-                or (hooks.should_evaluate is not None and hooks.should_evaluate(step, clock)))
-            if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
-                writer.flush()  # never checkpoint or score a state whose losses were not checked
-                train_s += time.perf_counter() - tic
-                if step % config.train.ckpt_every == 0 or step == total or stopping:
-                    checkpoint.save(manager, step, state, force=step == total or stopping)
-                if evaluating:
-                    history.append(evaluate(state, step))
-                    logging.info("step %d: test %s", step,
-                                 {k: v for k, v in history[-1].items() if k != "per_group"})
-                    run_records.write_results(workdir, {"history": history})
-                    writer.events.scalars(step, history[-1], prefix="test/")
-                    if hooks.after_evaluation is not None:
-                        hooks.after_evaluation(history[-1], state)
-                tic = time.perf_counter()
-            if stopping:
-                logging.info("stopped early at step %d of %d", step, total)
-                break
-        if signals.received is not None:
-            pbar.close()
-            manager.wait_until_finished()
-            manager.close()
-            name = signal.Signals(signals.received).name
-            raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
-                              "the same command resumes from it", 128 + signals.received)
-    writer.flush()
+    try:
+        with _StopSignals() as signals:
+            while step < total:
+                stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
+                                                spec.eval_every))
+                state, metrics = chunk(state, data, train_key, n_steps=stop - step)
+                writer.push(step, metrics)
+                step = stop
+                if hooks.after_chunk is not None:
+                    hooks.after_chunk(step, state)
+                clock = train_s + time.perf_counter() - tic
+                stopping = signals.received is not None or (
+                    hooks.should_stop is not None and hooks.should_stop(step, clock))
+                evaluating = step < total and signals.received is None and (
+                    (spec.eval_every and step % spec.eval_every == 0)
+                    or (hooks.should_evaluate is not None and hooks.should_evaluate(step, clock)))
+                if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
+                    # Never checkpoint or score a state whose losses were not checked.
+                    writer.flush()
+                    train_s += time.perf_counter() - tic
+                    if step % config.train.ckpt_every == 0 or step == total or stopping:
+                        checkpoint.save(manager, step, state, force=step == total or stopping)
+                    if evaluating:
+                        history.append(evaluate(state, step))
+                        logging.info("step %d: test %s", step,
+                                     {k: v for k, v in history[-1].items() if k != "per_group"})
+                        run_records.write_results(workdir, {"history": history})
+                        writer.events.scalars(step, history[-1], prefix="test/")
+                        if hooks.after_evaluation is not None:
+                            hooks.after_evaluation(history[-1], state)
+                    tic = time.perf_counter()
+                if stopping:
+                    logging.info("stopped early at step %d of %d", step, total)
+                    break
+            if signals.received is not None:
+                close()
+                name = signal.Signals(signals.received).name
+                raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
+                                  "the same command resumes from it", 128 + signals.received)
+        writer.flush()
+    except Interrupted:
+        raise
+    except Exception:  # e.g. a diverged loss (FloatingPointError)
+        close()
+        raise
     train_s += time.perf_counter() - tic
-    pbar.close()
-    manager.wait_until_finished()
-    manager.close()
+    close()
     if history and history[-1]["step"] == step:  # stopped at an evaluation: no second one
         final = history[-1]
     else:
@@ -410,6 +431,24 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     return results
 
 
+def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, template,
+                        workdir: str) -> None:
+    """Refuses in one line to score a workdir's checkpoints with a config whose network
+    has other parameter shapes than the one its run trained (test-time options may
+    differ), naming the model fields that differ."""
+    if not saved or "model" not in saved:
+        return
+    trained = model.variables_shape(model.ModelConfig.from_dict(saved["model"]))
+    if jax.tree.map(jnp.shape, trained) == jax.tree.map(jnp.shape, template):
+        return
+    now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
+    diffs = checkpoint.differences({"model": saved["model"]}, {"model": now})
+    more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+    detail = f" ({'; '.join(diffs[:3])}{more})" if diffs else ""
+    raise ValueError(f"{workdir} holds a network of another shape than the config's{detail}; "
+                     "evaluate it with the config it was trained with")
+
+
 def evaluate_checkpoint(config, workdir: str) -> dict:
     """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
 
@@ -418,10 +457,13 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     checkpoint's step (``run_records.clock_at``).
     """
     train_data, test_data = load_splits(config.data)
-    config = resolve_input_scale(config, train_data, checkpoint.load_config(workdir))
+    saved = checkpoint.load_config(workdir)
+    config = resolve_input_scale(config, train_data, saved)
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
-    variables, step = checkpoint.restore_variables(workdir, model.variables_shape(model_cfg))
+    template = model.variables_shape(model_cfg)
+    _check_architecture(saved, model_cfg, template, workdir)
+    variables, step = checkpoint.restore_variables(workdir, template)
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
                            batch_size=config.train.eval_batch_size)

@@ -59,6 +59,24 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert reevaluated["final"]["train_s"] == pytest.approx(results["final"]["train_s"], abs=0.5)
     assert [h["step"] for h in reevaluated["history"]] == [h["step"] for h in results["history"]]
     assert results["history"], "the smoke run evaluates at its epoch ends"
+    # Scoring with a config of another network says so, instead of calling the checkpoints
+    # unreadable.
+    other = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                     "--mode=eval", "--config.model.shape_basis_size=5")
+    assert other.returncode == 2, other.stderr[-3000:]
+    assert other.stderr.endswith("holds a network of another shape than the config's "
+                                 "(model.shape_basis_size: 10 in the checkpoint's run, 5 now); "
+                                 "evaluate it with the config it was trained with\n")
+
+
+def test_a_diverging_run_stops_with_one_line(tmp_path, run_main):
+    out = run_main("--config=configs/synthetic.py:smoke", f"--workdir={tmp_path}",
+                   "--nofigures", "--config.optim.lr=1e6")
+    assert out.returncode == 2, out.stderr[-3000:]
+    assert "Traceback" not in out.stderr
+    last = out.stderr.rstrip("\n").splitlines()[-1]
+    assert last.startswith("error: loss is not finite at step ") and last.endswith(
+        "a lower --config.optim.lr, or a look at the data, usually helps"), last
 
 
 def test_wrong_keypoint_count_is_a_clear_error(tmp_path, run_main):

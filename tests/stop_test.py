@@ -176,15 +176,19 @@ def _assert_same_as(workdir, reference):
     assert not _tmp_folders(workdir)
 
 
-@pytest.mark.parametrize("sig, pause", [
-    (signal.SIGTERM, "save:2"),  # while the step-20 save is in flight
-    (signal.SIGINT, "cleanup:1"),  # while step 10 is being deleted (after the step-40 save)
-], ids=["SIGTERM_during_a_save", "SIGINT_during_the_clean_up"])
+@pytest.mark.parametrize("sig, pause, times", [
+    (signal.SIGTERM, "save:2", 1),  # while the step-20 save is in flight
+    # while step 10 is being deleted (after the step-40 save), delivered twice in quick
+    # succession as `timeout -s INT` does (to the process, then to its process group)
+    (signal.SIGINT, "cleanup:1", 2),
+], ids=["SIGTERM_during_a_save", "SIGINT_twice_during_the_clean_up"])
 def test_a_stop_signal_checkpoints_the_step_reached_and_the_run_resumes_bitwise(
-        tmp_path, reference, sig, pause):
+        tmp_path, reference, sig, pause, times):
     workdir = tmp_path / "run"
     proc, marker = _start_paused(workdir, pause)
-    proc.send_signal(sig)
+    for i in range(times):
+        time.sleep(0.3 * i)  # the second after the first has been handled
+        proc.send_signal(sig)
     open(marker + ".go", "w").close()
     err = _finish(proc)
     name = signal.Signals(sig).name
