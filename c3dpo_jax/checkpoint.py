@@ -297,11 +297,17 @@ def check_workdir(workdir: str, config: dict[str, Any]) -> None:
 
 
 def load_config(workdir: str) -> dict[str, Any] | None:
+    """The run's saved ``config.json``, None when there is none; a damaged one (e.g. cut
+    short by a full disk) is a one-line ValueError naming the file."""
     path = os.path.join(workdir, CONFIG_FILE)
     if not os.path.exists(path):
         return None
     with open(path) as f:
-        return json.load(f)
+        try:
+            return json.load(f)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path} is not valid JSON ({err}): it holds the run's settings, "
+                             "which loading and resuming the run need") from None
 
 
 def restore_latest(workdir: str, template, step: int | None = None, subtree: bool = False):

@@ -14,6 +14,7 @@ c3dpo_jax.predict``) start through ``run``, which
 ``setup_logging`` drops library INFO chatter and writes log lines above the progress bar.
 """
 
+import ast
 import importlib.util
 import logging as py_logging
 import os
@@ -48,19 +49,47 @@ def resolve_config(value: str) -> str:
 
     A path that exists relative to the working directory is kept; otherwise
     ``configs/NAME.py`` is the bundled copy. Neither: FileNotFoundError listing the bundled
-    configs (config_flags would only fail later, with a longer message).
+    configs (config_flags would only fail later, with a longer message); a file that
+    defines no ``get_config`` (a helper the configs import): ValueError.
     """
     path, sep, args = value.partition(":")
-    if os.path.exists(path):
-        return value
-    parts = os.path.normpath(path).split(os.sep)
-    bundled = os.path.join(bundled_configs_dir(), *parts[1:])
-    if parts[0] == "configs" and len(parts) > 1 and os.path.isfile(bundled):
-        return bundled + sep + args
-    names = sorted(n for n in os.listdir(bundled_configs_dir())
-                   if n.endswith(".py") and not n.startswith("_"))
-    raise FileNotFoundError(f"config file {path!r} not found; the bundled configs are "
-                            + ", ".join(f"configs/{n}" for n in names))
+    if not os.path.exists(path):
+        parts = os.path.normpath(path).split(os.sep)
+        bundled = os.path.join(bundled_configs_dir(), *parts[1:])
+        if not (parts[0] == "configs" and len(parts) > 1 and os.path.isfile(bundled)):
+            raise FileNotFoundError(f"config file {path!r} not found; {_bundled_list()}")
+        value = bundled + sep + args
+    if not _defines_get_config(value.partition(":")[0]):
+        raise ValueError(f"{path} defines no get_config(): it is not a config (the configs "
+                         f"import it); {_bundled_list()}")
+    return value
+
+
+def _defines_get_config(path: str) -> bool:
+    """Whether the Python file ``path`` defines, assigns or imports a top-level
+    ``get_config`` (a file that does not parse is left to the loader to report)."""
+    try:
+        with open(path) as f:
+            tree = ast.parse(f.read())
+    except (OSError, SyntaxError, ValueError):
+        return True
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef) and node.name == "get_config":
+            return True
+        if isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == "get_config" for t in node.targets):
+            return True
+        if isinstance(node, (ast.Import, ast.ImportFrom)) and any(
+                (a.asname or a.name.rpartition(".")[2]) == "get_config" for a in node.names):
+            return True
+    return False
+
+
+def _bundled_list() -> str:
+    names = sorted(n for n in os.listdir(bundled_configs_dir()) if n.endswith(".py")
+                   and not n.startswith("_")
+                   and _defines_get_config(os.path.join(bundled_configs_dir(), n)))
+    return "the bundled configs are " + ", ".join(f"configs/{n}" for n in names)
 
 
 def use_configs_package(config_file: str) -> None:
@@ -163,6 +192,9 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
 
     def guarded(argv):
         try:
+            if len(argv) > 1:  # e.g. "--config.x False": absl would leave "False" unread
+                raise ValueError(f"unexpected argument(s) {' '.join(argv[1:])!r}: give every "
+                                 "value with '=' (e.g. --config.model.canonicalization=False)")
             main(argv)
         except USER_ERRORS as err:
             if is_verbose(verbose):

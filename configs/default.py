@@ -1,6 +1,8 @@
 """Base config: the release's model and optimiser defaults; dataset configs override it.
 
-Run: ``python -m c3dpo_jax.main --config=configs/default.py --workdir=/tmp/c3dpo``.
+Not a recipe to run by itself (its data are the generated shapes of 20 points, its model
+the release's 17): run a dataset config, e.g. ``python -m c3dpo_jax.main
+--config=configs/synthetic.py --workdir=runs/synthetic``.
 ``--config=FILE:ARGS`` takes comma-separated variant words:
   smoke  tiny networks (H=32, 2 layers), 20 steps (loss-weight ramps shrunk with the run):
          checks that everything runs;

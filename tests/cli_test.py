@@ -45,10 +45,20 @@ def test_config_paths_resolve_to_the_bundled_copy_only_when_missing(tmp_path, mo
     assert cli.resolve_config("configs/synthetic.py:smoke") == BUNDLED_SYNTHETIC + ":smoke"
     assert cli.resolve_config("./configs/synthetic.py") == BUNDLED_SYNTHETIC
     (tmp_path / "configs").mkdir()
-    (tmp_path / "configs" / "synthetic.py").write_text("")
+    (tmp_path / "configs" / "synthetic.py").write_text("from other import get_config\n")
     assert cli.resolve_config("configs/synthetic.py:smoke") == "configs/synthetic.py:smoke"
     with pytest.raises(FileNotFoundError, match="'configs/nope.py' not found.*configs/up3d.py"):
         cli.resolve_config("configs/nope.py")
+    # The helpers that configs import are neither listed nor taken for configs.
+    with pytest.raises(FileNotFoundError) as listing:
+        cli.resolve_config("configs/nope.py")
+    assert "configs/release.py" not in str(listing.value)
+    assert "configs/own_json.py" in str(listing.value)
+    with pytest.raises(ValueError, match=r"^configs/release.py defines no get_config\(\)"):
+        cli.resolve_config("configs/release.py")
+    (tmp_path / "configs" / "helper.py").write_text("def get_config_of(x):\n    return x\n")
+    with pytest.raises(ValueError, match="configs/helper.py defines no get_config"):
+        cli.resolve_config("configs/helper.py")
     with pytest.raises(FileNotFoundError, match="'other/synthetic.py' not found"):
         cli.resolve_config("other/synthetic.py")
 
@@ -181,3 +191,8 @@ def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_
     assert bad_variant.stderr.startswith("error: flag --config=") and bad_variant.stderr.endswith(
         "ValueError: unknown config variant(s) ['smok']; known: ('smoke', 'base', 'equiv', "
         "'full', 'supervised')\n")
+    stray = subprocess.run([*args, "--config.model.canonicalization", "False"], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=300)
+    assert stray.returncode == 2
+    assert stray.stderr == ("error: unexpected argument(s) 'False': give every value with '=' "
+                            "(e.g. --config.model.canonicalization=False)\n")

@@ -86,6 +86,15 @@ def test_config_json_is_replaced_whole(tmp_path):
     assert checkpoint.load_config(str(tmp_path)) == {"a": 2}
 
 
+def test_a_damaged_config_json_is_named_in_one_line(tmp_path):
+    checkpoint.save_config(str(tmp_path), _config().to_dict())
+    path = tmp_path / "config.json"
+    path.write_text(path.read_text()[:200])  # cut short, as by a full disk
+    for read in (checkpoint.load_config, load):
+        with pytest.raises(ValueError, match=f"^{path} is not valid JSON .*: it holds the run's"):
+            read(str(tmp_path))
+
+
 def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_intact(tmp_path):
     workdir = str(tmp_path / "run")
     with pytest.raises(ValueError, match="set --config.model.n_keypoints=8"):
