@@ -28,10 +28,10 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import app, flags
+from absl import flags
 from ml_collections import config_flags
 
-from c3dpo_jax import device_data, inference, model, train
+from c3dpo_jax import cli, device_data, inference, model, train
 from c3dpo_jax.state import create_train_state
 
 
@@ -47,6 +47,8 @@ def _define_flags():
             "chunk_steps", 1, "Train steps per compiled call (lax.scan), as training's chunks."),
         eval_batch=flags.DEFINE_integer("eval_batch", 1024, "Batch size of the eval forward pass."),
         repeats=flags.DEFINE_integer("repeats", 5, "Timed calls for eval and the matmul rate."),
+        verbose=flags.DEFINE_bool("verbose", False, "On an error, its traceback instead of one "
+                                  "line."),
     )
 
 
@@ -223,4 +225,5 @@ def main(argv, fl):
 if __name__ == "__main__":
     _flags = _define_flags()
     flags.mark_flags_as_required(["config"])
-    app.run(lambda argv: main(argv, _flags))
+    # As c3dpo-train: configs/NAME.py from any directory, input errors in one line.
+    cli.run(lambda argv: main(argv, _flags), _flags["verbose"])

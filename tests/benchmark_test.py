@@ -38,6 +38,16 @@ def test_benchmark_cli_writes_sane_json(tmp_path):
     assert "train_samples_per_s" in proc.stdout
 
 
+def test_benchmark_cli_finds_the_bundled_configs_and_reports_errors_in_one_line(tmp_path):
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run([sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/nope.py"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, PYTHONPATH=root))
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: config file 'configs/nope.py' not found; the bundled "
+                                  "configs are ") and proc.stderr.count("\n") == 1, proc.stderr
+
+
 def test_chunk_steps_below_one_is_a_clear_error():
     import pytest
 

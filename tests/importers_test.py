@@ -180,3 +180,30 @@ def test_views_from_sequence_with_clips_and_the_npz_clip_array(tmp_path):
     assert len(test_d) == 20 * 2 and len(train_d) == 40 * 2
     with pytest.raises(ValueError, match="clip has shape"):
         importers.views_from_sequence(x, clip=clip[:5])
+
+
+def test_the_import_command_reports_input_errors_in_one_line(tmp_path, monkeypatch, capsys):
+    x = _sequence(f=6, k=4)
+    x[2, 3] = np.nan  # a gap in the capture: frame 2, point 3
+    np.savez(tmp_path / "gap.npz", X=np.swapaxes(x, 1, 2))
+    cases = [
+        (["sequence", str(tmp_path / "gap.npz")], "the sequence has NaN or inf at 1 points of "
+         "1 frames (first: frame 2, point 3)"),
+        (["sequence", str(tmp_path / "gap.json")], f"{tmp_path / 'gap.json'}: a sequence is "
+         "read from a .npz or .mat file"),
+        (["coco", str(tmp_path / "none.json"), "--out", str(tmp_path / "o.json")],
+         "[Errno 2] No such file or directory"),
+    ]
+    for args, message in cases:
+        if args[0] == "sequence":
+            args = [*args, "--out_dir", str(tmp_path)]
+        monkeypatch.setattr("sys.argv", ["c3dpo-import", *args])
+        with pytest.raises(SystemExit) as stop:
+            importers.cli_main()
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith(f"error: {message}"), err
+        assert err.count("\n") == 1
+    monkeypatch.setattr("sys.argv", ["c3dpo-import", *cases[0][0], "--out_dir", str(tmp_path),
+                                     "--verbose"])
+    with pytest.raises(ValueError, match="NaN or inf"):  # --verbose: the exception itself
+        importers.cli_main()

@@ -25,11 +25,12 @@ import argparse
 import json
 import os
 import re
+import sys
 
 import numpy as np
 from absl import logging
 
-from c3dpo_jax import skeletons
+from c3dpo_jax import cli, skeletons
 from c3dpo_jax.data import json_dataset
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_rotations
@@ -37,6 +38,9 @@ from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_ro
 
 def load_sequence(path: str, key: str = "X") -> np.ndarray:
     """A 3D point sequence (F, K, 3) from ``.npz`` or ``.mat``."""
+    if not path.endswith((".npz", ".mat")):
+        raise ValueError(f"{path}: a sequence is read from a .npz or .mat file (an array X of "
+                         "shape (F, 3, K), (F, K, 3) or (3F, K))")
     if path.endswith(".mat"):
         import scipy.io
 
@@ -141,8 +145,13 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
     """
     if x.ndim != 3 or x.shape[2] != 3:
         raise ValueError(f"a sequence must be (F, K, 3), got {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise ValueError("the sequence contains NaN or inf")
+    bad = np.argwhere(~np.isfinite(x).all(-1))
+    if bad.size:
+        frames = np.unique(bad[:, 0])
+        raise ValueError(
+            f"the sequence has NaN or inf at {len(bad)} points of {len(frames)} frames (first: "
+            f"frame {bad[0, 0]}, point {bad[0, 1]}); a frame needs every point (fill the gaps "
+            "or drop those frames)")
     x, scale = _normalise(x) if normalise else (x - x.mean(1, keepdims=True), 1.0)
     if clip is None:
         test = frame_blocks_split(len(x), test_fraction, n_blocks, seed)
@@ -320,6 +329,8 @@ _SKELETON_HELP = ("lines for the pictures, stored in the files: a built-in name 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m c3dpo_jax.data.importers",
                                      description=__doc__.split("\n\n")[0])
+    parser.add_argument("--verbose", action="store_true",
+                        help="on an error, its traceback instead of one line")
     sub = parser.add_subparsers(dest="kind", required=True)
     for kind in ("sequence", "bvh"):
         p = sub.add_parser(kind, help="views of a 3D point sequence" if kind == "sequence"
@@ -396,5 +407,20 @@ def main(argv=None) -> None:
                 skeleton=args.skeleton or bones)
 
 
+def cli_main() -> None:
+    """The ``c3dpo-import`` console script: ``main`` with errors in the input (files, their
+    contents, argument values) as one line ``error: ...`` and exit status 2, as the other
+    commands print them (``--verbose``: the traceback instead)."""
+    argv = sys.argv[1:]
+    verbose = "--verbose" in argv
+    try:
+        main([a for a in argv if a != "--verbose"])
+    except cli.USER_ERRORS as err:
+        if verbose:
+            raise
+        print(f"error: {cli.error_message(err)}", file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
-    main()
+    cli_main()
