@@ -6,8 +6,8 @@ Prints a markdown table (test MPJPE at each budget: mean +- std over seeds, the 
 of seeds in brackets when more than one; the baselines, from the runs or from
 ``DIR/baselines/DATASET.json`` (run.py ``--baselines_only``); the final error of the same
 networks trained with the 3D ground truth, when there are ``cpu_supervised`` runs (run.py
-``--supervised``); the ratio of the fitted mean shape to the cpu recipe at the last budget) and writes ``DIR/curves.png`` (MPJPE against wall time, one panel
-per dataset).
+``--supervised``); the ratio of the fitted mean shape to the cpu recipe at the last
+budget) and writes ``DIR/curves.png`` (MPJPE against wall time, one panel per dataset).
 """
 
 import argparse
