@@ -149,7 +149,7 @@ def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool 
     # (one item or several) from the first one it reads, so a damaged step folder read
     # first would make every intact one after it unreadable to the same manager.
     reader = ocp.CheckpointManager(manager.directory,
-                                   options=ocp.CheckpointManagerOptions(read_only=True))
+                                   options=ocp.CheckpointManagerOptions(create=False))
     try:
         state = reader.restore(step, args=_restore_args(template, subtree))
     except Exception as err:  # noqa: BLE001 (orbax raises many types for damaged files)
@@ -314,7 +314,11 @@ def restore_latest(workdir: str, template, step: int | None = None, subtree: boo
     """Restores ``template``-shaped state from ``workdir``: ``step``, or by default the newest
     checkpoint that reads back intact. With ``subtree``, only the entries that ``template``
     names are read (``restore_variables``)."""
-    manager = ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR)))
+    directory = os.path.abspath(os.path.join(workdir, CHECKPOINT_DIR))
+    if not os.path.isdir(directory):  # a read makes no folder
+        raise FileNotFoundError(f"no checkpoint found under {workdir}/{CHECKPOINT_DIR}")
+    manager = ocp.CheckpointManager(directory,
+                                    options=ocp.CheckpointManagerOptions(create=False))
     try:
         if step is None:
             state, step = _restore_newest(manager, template, subtree)

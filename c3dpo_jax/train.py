@@ -176,18 +176,29 @@ class RunSpec:
                    batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
                    total_steps=t.num_steps or t.epochs * steps_per_epoch,
                    eval_every=eval_every)
-        for term in ("canonicalization", "deformation"):
-            ramp = getattr(spec.loss, f"{term}_ramp")
-            if ramp and ramp[1] > spec.total_steps:
-                logging.warning(
-                    "config.loss.%s_ramp=%s ends after the run's %d steps: the weight never "
-                    "reaches config.loss.w_%s_final (set a ramp inside the run)", term,
-                    ramp, spec.total_steps, term)
-        if spec.optim.warmup_steps > spec.total_steps:
-            logging.warning(
-                "config.optim.warmup_steps=%d is longer than the run's %d steps: the learning "
-                "rate never reaches config.optim.lr", spec.optim.warmup_steps, spec.total_steps)
         return spec
+
+    def warnings(self) -> list[str]:
+        """Settings that are valid but defeat themselves: schedules cut short by the run's
+        length, a shape basis as large as the shapes (``train_and_evaluate`` logs them once,
+        before training)."""
+        out = []
+        k, d = self.model.n_keypoints, self.model.shape_basis_size
+        if d >= 3 * k:
+            out.append(f"config.model.shape_basis_size={d} is not below 3K = {3 * k}: such a "
+                       "basis fits any shape, so the views no longer constrain the depth "
+                       "(keep D well below 3K, docs/data.md)")
+        for term in ("canonicalization", "deformation"):
+            ramp = getattr(self.loss, f"{term}_ramp")
+            if ramp and ramp[1] > self.total_steps:
+                out.append(f"config.loss.{term}_ramp={ramp} ends after the run's "
+                           f"{self.total_steps} steps: the weight never reaches "
+                           f"config.loss.w_{term}_final (set a ramp inside the run)")
+        if self.optim.warmup_steps > self.total_steps:
+            out.append(f"config.optim.warmup_steps={self.optim.warmup_steps} is longer than the "
+                       f"run's {self.total_steps} steps: the learning rate never reaches "
+                       "config.optim.lr")
+        return out
 
     def optimizer(self) -> optax.GradientTransformation:
         return make_optimizer(self.optim, self.steps_per_epoch)
@@ -323,6 +334,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                   checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
     config = resolve_input_scale(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
+    for warning in spec.warnings():
+        logging.warning("%s", warning)
+    if spec.batch_size > len(train_data):
+        logging.warning("config.train.batch_size=%d is larger than the %d training views: every "
+                        "batch repeats views", spec.batch_size, len(train_data))
     # config.json also records what the training split held, so that resuming on a file
     # edited in place under the same path is refused like a change of settings.
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))

@@ -78,6 +78,7 @@ def test_non_finite_values_are_not_restored_and_no_intact_checkpoint_is_an_error
         checkpoint.restore_latest(str(tmp_path), TEMPLATE)
     with pytest.raises(FileNotFoundError, match="no checkpoint found"):
         checkpoint.restore_latest(str(tmp_path / "elsewhere"), TEMPLATE)
+    assert not (tmp_path / "elsewhere").exists()  # reading makes no folder
 
 
 def test_a_new_run_removes_the_uncommitted_saves_of_a_killed_one(tmp_path):

@@ -337,32 +337,33 @@ def test_deformation_prior_is_the_mean_squared_deformation(setup):
         train.LossConfig(deformation_ramp=(1, 5))
 
 
-def test_a_ramp_that_ends_after_the_run_is_warned_about(monkeypatch):
-    from absl import logging
-
-    messages = []
-    monkeypatch.setattr(logging, "warning", lambda msg, *args: messages.append(msg % args))
+def test_a_ramp_that_ends_after_the_run_is_warned_about():
     c = default.get_config()
     c.train.num_steps = 20
     c.loss.deformation_ramp, c.loss.w_deformation_final = (3000, 5000), 0.0
-    train.RunSpec.from_config(c)
+    messages = train.RunSpec.from_config(c).warnings()
     assert len(messages) == 1 and messages[0].startswith(
         "config.loss.deformation_ramp=(3000, 5000) ends after the run's 20 steps")
     c.loss.deformation_ramp = (5, 10)
-    train.RunSpec.from_config(c)
-    assert len(messages) == 1
+    assert train.RunSpec.from_config(c).warnings() == []
+    c.optim.warmup_steps = 21  # a warm-up longer than the run
+    assert train.RunSpec.from_config(c).warnings() == [
+        "config.optim.warmup_steps=21 is longer than the run's 20 steps: the learning rate "
+        "never reaches config.optim.lr"]
     # The :smoke variant shrinks a config's ramps with its run: own_json's prior ramps
     # over 10-20% of its 10,000 steps, so over steps 2-4 of the smoke run's 20, unwarned.
     smoke = own_json.get_config("smoke")
     assert own_json.get_config().loss.deformation_ramp == (1000, 2000)
     assert smoke.loss.deformation_ramp == (2, 4) and smoke.train.num_steps == 20
-    train.RunSpec.from_config(smoke)
-    assert len(messages) == 1
-    # A warm-up longer than the run is warned about too; :smoke shrinks it with the run.
-    c.optim.warmup_steps = 30
-    train.RunSpec.from_config(c)
-    assert len(messages) == 2 and messages[1].startswith(
-        "config.optim.warmup_steps=30 is longer than the run's 20 steps")
+    assert train.RunSpec.from_config(smoke).warnings() == []
+    c.optim.warmup_steps = 0
+    c.model.n_keypoints, c.model.shape_basis_size = 5, 15  # a basis of every 3K = 15 shape
+    assert train.RunSpec.from_config(c).warnings() == [
+        "config.model.shape_basis_size=15 is not below 3K = 15: such a basis fits any shape, "
+        "so the views no longer constrain the depth (keep D well below 3K, docs/data.md)"]
+    c.model.shape_basis_size = 14
+    assert train.RunSpec.from_config(c).warnings() == []
+    # :smoke shrinks the warm-up with the run too.
     assert own_json.get_config().optim.warmup_steps == 500
     assert smoke.optim.warmup_steps == 1  # 500 of 10,000 steps -> 1 of 20, unwarned above
 

@@ -112,6 +112,14 @@ def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_in
     assert json.loads(saved)["optim"]["optimizer"] == "sgd"
 
 
+def test_a_batch_larger_than_the_training_split_is_warned_about(tmp_path, caplog):
+    with caplog.at_level("WARNING"):
+        train.train_and_evaluate(_config(**{"data.synthetic.n_train": 20,
+                                             "train.num_steps": 5}), str(tmp_path / "run"))
+    assert ("config.train.batch_size=32 is larger than the 20 training views: every batch "
+            "repeats views") in caplog.text
+
+
 def test_a_training_file_edited_in_place_is_refused_on_resume(tmp_path):
     from c3dpo_jax.data import json_dataset, synthetic
 
