@@ -216,7 +216,16 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
         if K is None:
             raise ValueError(
                 "this is a perspective model: pass the intrinsics K, (3, 3) or (B, 3, 3)")
-        K = np.broadcast_to(_as_batch("K", K, (3, 3), np.ndim(K) == 2), (*vis.shape[:1], 3, 3))
+        K = _as_batch("K", K, (3, 3), np.ndim(K) == 2)
+        if K.shape[0] not in (1, vis.shape[0]):
+            raise ValueError(f"K has batch size {K.shape[0]} but kp has {vis.shape[0]} (give one "
+                             "K for all, or one per sample)")
+        K = np.broadcast_to(K, (*vis.shape[:1], 3, 3))
+        with np.errstate(all="ignore"):
+            singular = np.flatnonzero(~(np.abs(np.linalg.det(K.astype(np.float64))) > 1e-12))
+        if singular.size:
+            raise ValueError(f"K of {_samples(singular)} is singular: intrinsics have a focal "
+                             "length on the diagonal and [0, 0, 1] as the last row")
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
     _check_values(cfg, kp, vis, K)

@@ -40,6 +40,10 @@ def test_pascal_bbox_rule_hides_points_outside_the_enlarged_box():
 @pytest.mark.parametrize("mutate, message", [
     (lambda e: e[2].pop("kp_vis"), "entry 2: required field 'kp_vis' is missing"),
     (lambda e: e[1]["kp_loc"][0].pop(), "entry 1: field 'kp_loc' is a ragged or non-numeric"),
+    (lambda e: e[2]["kp_loc"][0].__setitem__(1, "1.5"),
+     "entry 2: field 'kp_loc' is a ragged or non-numeric"),  # a number as a string
+    (lambda e: e[0]["kp_loc"][1].__setitem__(0, None),
+     "entry 0: field 'kp_loc' is a ragged or non-numeric"),  # null, not NaN
     (lambda e: e[3].update(kp_vis=[1] * 4), "entry 3: field 'kp_vis' has 4 keypoints but the "
      "dataset has 5 keypoints (K must be the same in every entry)"),
     (lambda e: e[0]["kp_loc"][1].__setitem__(2, float("nan")),

@@ -199,6 +199,13 @@ def test_perspective_model_needs_intrinsics():
     K = np.array([[500.0, 0, 200], [0, 500, 200], [0, 0, 1]], np.float32)
     rec = reconstruct(p, kp, vis, K)
     assert np.all(np.isfinite(rec.shape_3d))
+    np.testing.assert_array_equal(reconstruct(p, kp, vis, np.stack([K, K])).shape_3d,
+                                  rec.shape_3d)  # one K per sample
+    with pytest.raises(ValueError, match=r"^K has batch size 3 but kp has 2 \(give one K"):
+        reconstruct(p, kp, vis, np.stack([K, K, K]))
+    flat = np.stack([K, K * np.array([1, 1, 0], np.float32)[:, None]])  # a zero last row
+    with pytest.raises(ValueError, match=r"^K of sample\(s\) \[1\] is singular"):
+        reconstruct(p, kp, vis, flat)
 
 
 def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_path):

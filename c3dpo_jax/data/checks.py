@@ -54,18 +54,24 @@ class Problems:
         return np.flatnonzero(keep)
 
 
+_NUMBERS = "biuf"  # JSON numbers and booleans (0 / 1), not strings or null
+
+
 def stack(entries, field: str, shape: tuple, problems: Problems) -> np.ndarray:
-    """(M, *shape) float32; ragged, non-numeric or misshaped entries become problems (NaN)."""
+    """(M, *shape) float32; ragged, non-numeric (strings, null) or misshaped entries become
+    problems (NaN)."""
     try:  # Fast path: one conversion for the whole file.
-        arr = np.asarray([e[field] for e in entries], dtype=np.float32)
-        if arr.shape[1:] == shape:
-            return arr
+        arr = np.asarray([e[field] for e in entries])
+        if arr.dtype.kind in _NUMBERS and arr.shape[1:] == shape:
+            return arr.astype(np.float32)
     except (ValueError, TypeError):
         pass
     out = np.full((len(entries), *shape), np.nan, np.float32)
     for i, e in enumerate(entries):
         try:
-            value = np.asarray(e[field], dtype=np.float32)
+            value = np.asarray(e[field])
+            if value.dtype.kind not in _NUMBERS:
+                raise TypeError(value.dtype)
         except (ValueError, TypeError):
             problems.add(i, f"field {field!r} is a ragged or non-numeric list")
             continue
