@@ -133,6 +133,16 @@ def cpu_recipe(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     return c
 
 
+def refined_inference(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+    """Not in the paper, at inference only: Phi's camera and shape coefficients for each view
+    start 20 Levenberg-Marquardt steps on the view's 2D reprojection error plus 0.3 times the
+    mean squared distance of the canonical shape's points to Phi's
+    (``model.test_time_refine_iters``, ``model.test_time_refine_prior``; evidence:
+    experiments/dev_suite, "Refining the regressed camera and coefficients at test time")."""
+    c.model.test_time_refine_iters, c.model.test_time_refine_prior = 20, 0.3
+    return c
+
+
 def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collections.ConfigDict:
     """Applies the ``:smoke``, ``:base``, ``:equiv``, ``:supervised`` words (see the module
     docstring)."""

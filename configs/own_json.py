@@ -41,5 +41,5 @@ def get_config(arg=None):
     c.loss.w_deformation, c.loss.w_deformation_final = 1.0, 0.0
     c.loss.deformation_ramp = (1000, 2000)
     c.optim.warmup_steps = 500
-    c.model.test_time_refine_iters, c.model.test_time_refine_prior = 20, 0.3
+    default.refined_inference(c)
     return default.apply_variants(c, arg)
