@@ -171,12 +171,11 @@ class RunSpec:
         t = config.train
         steps_per_epoch = max(t.samples_per_epoch // t.batch_size, 1)
         eval_every = t.get("eval_every_steps", 0) or t.eval_every_epochs * steps_per_epoch
-        spec = cls(model=model.ModelConfig.from_dict(config.model),
+        return cls(model=model.ModelConfig.from_dict(config.model),
                    optim=OptimConfig.from_dict(config.optim), loss=LossConfig(**config.loss),
                    batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
                    total_steps=t.num_steps or t.epochs * steps_per_epoch,
                    eval_every=eval_every)
-        return spec
 
     def warnings(self) -> list[str]:
         """Settings that are valid but defeat themselves: schedules cut short by the run's

@@ -57,7 +57,7 @@ def test_wheel_holds_the_configs_under_the_package_and_no_top_level_configs(whee
     assert "c3dpo_jax-0.1.0.dist-info/licenses/LICENSE" in names
     for script in ("c3dpo-train = c3dpo_jax.main:cli_main",
                    "c3dpo-predict = c3dpo_jax.predict:cli_main",
-                   "c3dpo-import = c3dpo_jax.data.importers:main"):
+                   "c3dpo-import = c3dpo_jax.data.importers:cli_main"):
         assert script in entry_points
 
 
