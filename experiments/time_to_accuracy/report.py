@@ -48,10 +48,11 @@ SUPERVISED_LABEL = "same network, 3D truth"
 
 
 def supervised_by_dataset(runs: list[dict]) -> dict[str, list[float]]:
-    """Final test MPJPE of each dataset's ``cpu_supervised`` runs (run.py ``--supervised``)."""
+    """Final test MPJPE of each dataset's ``cpu_supervised`` runs (run.py ``--supervised``)
+    that trained their recipe's steps to the end (not stopped by a time budget)."""
     out = collections.defaultdict(list)
     for r in runs:
-        if r["recipe"] == SUPERVISED:
+        if r["recipe"] == SUPERVISED and r.get("ended"):
             out[r["dataset"]].append(r["curve"][-1]["mpjpe"])
     return out
 
