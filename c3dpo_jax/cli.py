@@ -186,9 +186,13 @@ def is_verbose(verbose: flags.FlagHolder) -> bool:
 
 def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
     """``app.run(main)`` as the package's commands run (module docstring)."""
-    # --helpshort lists the flags of the file in argv[0]: a console script defines none.
+    # --helpshort lists the flags of the file in argv[0]: a console script defines none; and
+    # --help starts with __main__'s docstring, which a console script's wrapper lacks.
     for flag in flags.FLAGS.get_key_flags_for_module(main.__module__):
         flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
+    script = sys.modules.get("__main__")
+    if script is not None and not script.__doc__:
+        script.__doc__ = sys.modules[main.__module__].__doc__
 
     def guarded(argv):
         try:

@@ -324,7 +324,6 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     """
     validation.check_config(config)
     hooks = hooks or Hooks()
-    os.makedirs(workdir, exist_ok=True)
     train_data, test_data = load_splits(config.data)
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale; one that starts from another run's parameters
@@ -346,7 +345,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
     _check_data(train_data, spec.model, "train", with_3d=with_3d)
     _check_data(test_data, spec.model, "test")
-    checkpoint.save_config(workdir, record)  # only once every check has passed
+    os.makedirs(workdir, exist_ok=True)  # only once every check has passed: a refused run
+    checkpoint.save_config(workdir, record)  # leaves no folder behind
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(

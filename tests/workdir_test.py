@@ -99,7 +99,7 @@ def test_a_failed_run_leaves_the_workdir_reusable_and_a_refused_one_leaves_it_in
     workdir = str(tmp_path / "run")
     with pytest.raises(ValueError, match="set --config.model.n_keypoints=8"):
         train.train_and_evaluate(_config(**{"model.n_keypoints": 7}), workdir)
-    assert checkpoint.load_config(workdir) is None  # nothing recorded for a run that never ran
+    assert not os.path.exists(workdir)  # nothing made for a run that never ran
     result = train.train_and_evaluate(_config(), workdir)  # the suggested K, same workdir
     assert result["final"]["step"] == 10
     assert os.path.exists(tmp_path / "run" / "checkpoints" / "10" / checkpoint.CHECKSUM_FILE)
