@@ -209,6 +209,10 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     empty = np.flatnonzero(vis.sum(axis=1) == 0)
     if empty.size:
         raise ValueError(f"{_samples(empty)} have no visible keypoint")
+    lone = np.flatnonzero(vis.sum(axis=1) == 1)
+    if lone.size:  # training needs two (data.min_visible): one point says nothing of the shape
+        logging.warning("%s have one visible keypoint: their 3D shape is the model's guess, "
+                        "not a lift of the view", _samples(lone))
     if class_mask is not None:
         one = np.ndim(class_mask) == 1
         class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), one), vis.shape)

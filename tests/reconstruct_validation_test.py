@@ -77,3 +77,17 @@ def test_empty_and_ragged_input(params):
     )
     kp, vis = _inputs(1)
     assert _error(params, kp[0], [[1]] * 6 + [[1, 1]]).startswith("vis is not a numeric array")
+
+
+def test_a_view_with_one_visible_point_is_lifted_with_a_warning(params, caplog):
+    kp, vis = _inputs()
+    vis[1] = 0
+    vis[1, 4] = 1
+    with caplog.at_level("WARNING"):
+        out = reconstruct(params, kp, vis)
+    assert np.all(np.isfinite(out.shape_3d))
+    assert "sample(s) [1] have one visible keypoint" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        reconstruct(params, kp[[0, 2]], vis[[0, 2]])
+    assert "visible keypoint" not in caplog.text
