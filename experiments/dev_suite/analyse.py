@@ -599,6 +599,18 @@ def _descendants(parents, j: int) -> list[int]:
     return out
 
 
+def _bone_turns(pred: np.ndarray, parents) -> np.ndarray:
+    """(M, bones, N, 3): ``pred`` (M, N, 3) with each bone turned in depth in turn (its far
+    joint and everything below it reflected in depth about its near joint), the bones in
+    the order of their far joints."""
+    joints = [j for j, p in enumerate(parents) if p >= 0]
+    turned = np.repeat(pred[:, None], len(joints), 1)
+    for b, j in enumerate(joints):
+        turned[:, b, _descendants(parents, j), 2] -= 2 * (pred[:, j, 2]
+                                                          - pred[:, parents[j], 2])[:, None]
+    return turned
+
+
 def _view_errors(pred: np.ndarray, truth: np.ndarray) -> dict:
     """``evaluation.mpjpe``'s per-view errors of ``pred`` against ``truth`` (M, N, 3), depths
     centred over all points (the suite's human sets have every point visible)."""
@@ -631,11 +643,8 @@ def bone_directions(pred, truth, dataset: str) -> list[float]:
     for group in groups:
         cols = [joints.index(j) for j in group]
         out.append(float(wrong[:, cols].sum() / max(deep[:, cols].sum(), 1)))
-    below = [_descendants(parents, j) for j in joints]
     for _ in joints:  # each round, per view, the one turn that brings it nearest the truth
-        turned = np.repeat(pred[:, None], len(joints), 1)  # (M, bones, N, 3)
-        for b, (j, subtree) in enumerate(zip(joints, below)):
-            turned[:, b, subtree, 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[:, None]
+        turned = _bone_turns(pred, parents)
         errs = _view_errors(turned.reshape(-1, *pred.shape[1:]), np.repeat(
             truth, len(joints), 0))["mpjpe_orig"].reshape(len(pred), len(joints))
         best = np.argmin(errs, 1)
@@ -723,16 +732,10 @@ def relift_choice(lift, pred, truth, dataset: str) -> list[float]:
     flipped = (per["mpjpe_flip"] < per["mpjpe_orig"])[:, None]
     truth_depth = np.concatenate([pred[..., :2], np.where(flipped, -1.0, 1.0)[..., None]
                                   * truth[..., 2:]], -1)
-    candidates = [pred]
-    for j in (j for j, p in enumerate(parents) if p >= 0):
-        turned = pred.copy()
-        turned[:, _descendants(parents, j), 2] -= 2 * (pred[:, j, 2] - pred[:, parents[j], 2])[
-            :, None]
-        candidates.append(turned)
+    candidates = [pred, *np.moveaxis(_bone_turns(pred, parents), 1, 0)]
     scores = np.stack([relift_inconsistency(lift, c) for c in candidates])  # (1 + bones, M)
-    errors = np.stack([np.minimum(*(_view_errors(c, truth)[k] for k in ("mpjpe_orig",
-                                                                       "mpjpe_flip")))
-                       for c in candidates])
+    per_candidate = [_view_errors(c, truth) for c in candidates]
+    errors = np.stack([np.minimum(e["mpjpe_orig"], e["mpjpe_flip"]) for e in per_candidate])
     rows = np.arange(len(pred))
     pick, oracle = np.argmin(scores, 0), np.argmin(errors, 0)
     own, true = scores[0], relift_inconsistency(lift, truth_depth)
