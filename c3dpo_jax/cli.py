@@ -164,7 +164,8 @@ def error_message(err: BaseException) -> str:
     return text
 
 
-def _fail(err: BaseException) -> None:
+def fail(err: BaseException) -> None:
+    """Exits as every command does on a user error: ``error: MESSAGE`` on stderr, status 2."""
     print(f"error: {error_message(err)}", file=sys.stderr)
     sys.exit(2)
 
@@ -176,7 +177,7 @@ def _parse_flags(argv: list[str]) -> list[str]:
     except (flags.Error, AttributeError, *USER_ERRORS) as err:
         if any(a.startswith("--verbose") for a in argv):
             raise
-        _fail(err)
+        fail(err)
 
 
 def is_verbose(verbose: flags.FlagHolder) -> bool:
@@ -203,7 +204,7 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
         except USER_ERRORS as err:
             if is_verbose(verbose):
                 raise
-            _fail(err)
+            fail(err)
 
     app.run(guarded, flags_parser=_parse_flags)
 

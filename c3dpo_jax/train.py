@@ -419,19 +419,16 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                 if stopping:
                     logging.info("stopped early at step %d of %d", step, total)
                     break
-            if signals.received is not None:
-                close()
-                name = signal.Signals(signals.received).name
-                raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
-                                  "the same command resumes from it", 128 + signals.received)
         writer.flush()
-    except Interrupted:
-        raise
     except Exception:  # e.g. a diverged loss (FloatingPointError)
         close()
         raise
     train_s += time.perf_counter() - tic
     close()
+    if signals.received is not None:
+        name = signal.Signals(signals.received).name
+        raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
+                          "the same command resumes from it", 128 + signals.received)
     if history and history[-1]["step"] == step:  # stopped at an evaluation: no second one
         final = history[-1]
     else:

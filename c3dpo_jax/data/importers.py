@@ -418,8 +418,7 @@ def cli_main() -> None:
     except cli.USER_ERRORS as err:
         if verbose:
             raise
-        print(f"error: {cli.error_message(err)}", file=sys.stderr)
-        sys.exit(2)
+        cli.fail(err)
 
 
 if __name__ == "__main__":
