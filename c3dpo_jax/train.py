@@ -339,7 +339,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                         "batch repeats views", spec.batch_size, len(train_data))
     # config.json also records what the training split held, so that resuming on a file
     # edited in place under the same path is refused like a change of settings.
-    record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data))
+    # data_files: the data files' absolute paths, so that the run's pictures find them
+    # (visualise.run_style) from any directory, not only the one the run was started in.
+    record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data),
+                  data_files={k: os.path.abspath(config.data[k])
+                              for k in ("train_path", "test_path") if config.data[k]})
     checkpoint.check_workdir(workdir, record)
     record["software"] = checkpoint.software_history(workdir)
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D

@@ -240,13 +240,22 @@ def data_file_style(path: str) -> dict:
 
 def run_style(config: dict) -> dict:
     """``skeleton``, ``y_up`` and ``unit`` for a run's pictures, from its ``config.json``
-    content: what its test (else train) file says, else the built-in dataset's defaults."""
-    data = config.get("data", {})
+    content: what its test (else train) file says (found by the absolute path the run
+    recorded, ``data_files``, else by the path as given), else the built-in dataset's
+    defaults. A data file that cannot be found is named in a warning."""
+    data, files = config.get("data", {}), config.get("data_files", {})
+    missing = []
     for key in ("test_path", "train_path"):
-        if data.get(key) and os.path.exists(data[key]):
-            style = data_file_style(data[key])
+        found = [p for p in (files.get(key), data.get(key)) if p and os.path.exists(p)]
+        if found:
+            style = data_file_style(found[0])
             if style:
                 return {**STYLE_DEFAULTS, **style}
+        elif data.get(key):
+            missing.append(files.get(key) or data[key])
+    if missing:
+        logging.warning("the run's data file %s is not found: its pictures take the default "
+                        "style (skeleton, y axis, unit)", missing[0])
     name = data.get("name") if data.get("source") == "release" else data.get("source")
     return {**STYLE_DEFAULTS, **_DATASET_STYLES.get(name or "", {})}
 

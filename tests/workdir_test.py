@@ -174,3 +174,27 @@ def test_the_workdir_records_the_software_and_a_resumption_by_other_software(
     fresh = str(tmp_path / "fresh")  # a new workdir starts its own history
     train.train_and_evaluate(_config(), fresh)
     assert checkpoint.load_config(fresh)["software"] == [other]
+
+
+def test_the_pictures_find_the_data_files_from_any_directory(tmp_path, monkeypatch, caplog):
+    from c3dpo_jax import visualise
+    from c3dpo_jax.data import json_dataset, synthetic
+
+    data = synthetic.make_split(64, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.0,
+                                noise=0.0, perspective=False, shape_seed=0, seed=3)
+    (tmp_path / "data").mkdir()
+    json_dataset.save(data, str(tmp_path / "data" / "train.json"))
+    obj = json.loads((tmp_path / "data" / "train.json").read_text())
+    obj = {"dataset": "mine", "y_up": True, "skeleton": [[0, 1]],
+           "data": obj["data"] if isinstance(obj, dict) else obj}
+    (tmp_path / "data" / "test.json").write_text(json.dumps(obj))
+    monkeypatch.chdir(tmp_path / "data")  # paths as a user types them, relative
+    train.train_and_evaluate(
+        _config(**{"data.train_path": "train.json", "data.test_path": "test.json"}), "../run")
+    monkeypatch.chdir(tmp_path)  # elsewhere, the same relative paths name nothing
+    config = checkpoint.load_config("run")
+    assert config["data"]["test_path"] == "test.json"  # the config as given
+    assert visualise.run_style(config) == {"y_up": True, "skeleton": [[0, 1]], "unit": ""}
+    os.rename(tmp_path / "data", tmp_path / "moved")
+    assert visualise.run_style(config) == {"skeleton": None, "y_up": False, "unit": ""}
+    assert "data file " + str(tmp_path / "data" / "test.json") + " is not found" in caplog.text
