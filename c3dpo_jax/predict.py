@@ -7,8 +7,9 @@
 
 Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
 ``kp_vis``, or ``{"dataset", "data"}``), or COCO-style keypoint annotations
-(``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v >= 1;
-annotations with no visible point are skipped with a warning).
+(``{"annotations": [{"keypoints": [x, y, v] * N, ...}]}``, visible where v >= 1).
+Entries or annotations with no visible point are skipped with a warning (``index`` in the
+output says which input each reconstruction is).
 Pictures (``--figures``): the skeleton is ``--skeleton`` (a name such as ``h36m``, or
 index pairs ``0-1,1-2``), else the input file's, else the training data's; the up direction
 is ``--y_up``/``--noy_up``, else the input file's, else image convention (y down) for a
@@ -74,9 +75,19 @@ def read_input(path: str) -> dict[str, np.ndarray]:
     from c3dpo_jax.data import json_dataset
 
     # One visible point is enough to lift (reconstruct accepts it); training needs two.
+    # Entries with none are skipped, as COCO annotations are; other faults are errors.
     data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"),
-                              min_visible=1)
-    out = {"kp": data.kp, "vis": data.vis, "index": np.arange(len(data))}
+                              min_visible=0)
+    index = np.flatnonzero(data.vis.sum(1) > 0)
+    if len(index) < len(data):
+        skipped = np.setdiff1d(np.arange(len(data)), index)
+        if not len(index):
+            raise ValueError(f"{path}: no entry has a visible point")
+        logging.warning("%s: %d of %d entries have no visible point: skipped (entries %s%s)",
+                        path, skipped.size, len(data), skipped[:10].tolist(),
+                        " ..." if skipped.size > 10 else "")
+        data = data.subset(index)
+    out = {"kp": data.kp, "vis": data.vis, "index": index}
     optional = (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d))
     for name, value in optional:
         if value is not None:

@@ -86,8 +86,8 @@ def test_input_errors_are_one_line_before_any_work(setup):
         predict.run("no/such/workdir", "no/such/input.json", str(root / "o.txt"))
 
 
-def test_release_json_entries_with_one_visible_point_are_lifted_as_reconstruct_does(
-        setup, tmp_path):
+def test_release_json_entries_with_one_visible_point_are_lifted_and_none_skipped(
+        setup, tmp_path, caplog):
     _, params, _, data = setup
     vis = np.zeros(17)
     vis[4] = 1.0
@@ -98,18 +98,29 @@ def test_release_json_entries_with_one_visible_point_are_lifted_as_reconstruct_d
     assert got["vis"].sum() == 1
     want = reconstruct(params, data.kp[:1], vis[None])
     assert np.isfinite(want.shape_3d).all()
-    none = [{"kp_loc": data.kp[0].T.tolist(), "kp_vis": [0.0] * 17}]
-    path.write_text(json.dumps(none))
-    with pytest.raises(ValueError, match="visible"):
+    none = {"kp_loc": data.kp[0].T.tolist(), "kp_vis": [0.0] * 17}
+    path.write_text(json.dumps([none]))
+    with pytest.raises(ValueError, match="no entry has a visible point"):
         predict.read_input(str(path))
+    # Among others, an entry with no visible point is skipped (as a COCO annotation is) and
+    # ``index`` says which input each row is.
+    path.write_text(json.dumps([entries[0], none, entries[0]]))
+    with caplog.at_level("WARNING"):
+        got = predict.read_input(str(path))
+    assert got["index"].tolist() == [0, 2] and got["kp"].shape == (2, 17, 2)
+    assert "1 of 3 entries have no visible point: skipped (entries [1])" in caplog.text
 
 
 def test_coco_reader_rejects_malformed_keypoints():
     with pytest.raises(ValueError, match=r"\[x, y, v\] \* N"):
         predict.read_coco({"annotations": [{"keypoints": [1, 2]}]})
-    with pytest.raises(ValueError, match="has 1 keypoints, earlier ones 2"):
+    with pytest.raises(ValueError, match=r"annotation 1 has 1 keypoints, most others 2 \(1 of"):
         predict.read_coco({"annotations": [{"keypoints": [1, 2, 1, 3, 4, 1]},
                                            {"keypoints": [1, 2, 1]}]})
+    # The odd one out is named, wherever it is (here the first).
+    two, three = [1, 2, 1, 3, 4, 1], [1, 2, 1, 3, 4, 1, 5, 6, 1]
+    with pytest.raises(ValueError, match=r"annotation 0 has 2 keypoints, most others 3 \(1 of 3"):
+        predict.read_coco({"annotations": [{"keypoints": k} for k in (two, three, three)]})
 
 
 def test_pictures_take_skeleton_and_up_from_flags_else_input_else_training(setup, tmp_path):

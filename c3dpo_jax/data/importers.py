@@ -22,6 +22,7 @@ Glossary: F frames, K points, V views per frame.
 """
 
 import argparse
+import collections
 import json
 import os
 import re
@@ -281,10 +282,15 @@ def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=No
         if flat.size == 0 or flat.size % 3:
             raise ValueError(f"annotation {i}: 'keypoints' has {flat.size} numbers; expected "
                              "one length 3K for all annotations, [x, y, v] * N")
-        if rows and flat.size != rows[0].size:
-            raise ValueError(f"annotation {i} has {flat.size // 3} keypoints, earlier ones "
-                             f"{rows[0].size // 3}; expected one length 3K for all annotations")
         rows.append(flat)
+    sizes = [r.size for r in rows]
+    common = collections.Counter(sizes).most_common(1)[0][0]  # ties: the first annotation's
+    odd = [(i, size) for (i, _), size in zip(picked, sizes, strict=True) if size != common]
+    if odd:
+        i, size = odd[0]
+        raise ValueError(f"annotation {i} has {size // 3} keypoints, most others "
+                         f"{common // 3} ({len(odd)} of {len(rows)} annotations differ); "
+                         "expected one length 3K for all annotations")
     kpv = np.stack(rows).reshape(len(rows), -1, 3)
     vis = (kpv[..., 2] >= min_v).astype(np.float32)
     keep = vis.sum(1) >= min_visible
