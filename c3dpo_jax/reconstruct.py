@@ -41,9 +41,16 @@ class Reconstruction(NamedTuple):
     """Numpy outputs; leading dims ``*B`` as the input's (none for one sample).
 
     shape_3d (*B, N, 3): the 3D points in the camera frame, in the input's units
-      (= ``model.Prediction.shape_image_coord``; depth sign is arbitrary).
-    shape_canonical (*B, N, 3): the shape in the model's canonical frame.
-    rotation (*B, 3, 3): camera rotation, ``shape_camera = shape_canonical @ R.T``.
+      (= ``model.Prediction.shape_image_coord``): x, y are the input itself at visible
+      points and the reprojection at hidden ones; depth is relative (compare shapes with
+      their mean depth removed) and, from one view, its sign is ambiguous (a view and its
+      depth mirror image fit the same points). A perspective model's x, y are calibrated
+      (``K^-1`` applied), not pixels.
+    shape_canonical (*B, N, 3): the shape in the model's canonical frame, in the network's
+      units (the input times ``params.config.keypoint_rescale``, centred): up to the
+      model's scale and translation, the camera-frame shape in those units is
+      ``shape_canonical @ rotation.T``.
+    rotation (*B, 3, 3): the camera rotation (canonical frame -> camera frame).
     alpha (*B, D): shape-basis coefficients.
     kp_reprojected (*B, N, 2): the 3D shape projected back to input coordinates.
     """
