@@ -116,17 +116,18 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
 MAX_NORMALISED_EXTENT = 1e4
 
 
-def _numeric(name: str, x) -> np.ndarray:
+def _numeric(name: str, x, dtype=np.float32) -> np.ndarray:
     try:
-        return np.asarray(x, dtype=np.float32)
+        return np.asarray(x, dtype=dtype)
     except (TypeError, ValueError) as err:
         first = (str(err).splitlines() or [""])[0]
         raise ValueError(f"{name} is not a numeric array (a ragged or non-numeric list? "
                          f"{first})") from None
 
 
-def _as_batch(name: str, x, tail: tuple[int, ...], single: bool, finite: bool = True):
-    x = _numeric(name, x)
+def _as_batch(name: str, x, tail: tuple[int, ...], single: bool, finite: bool = True,
+              dtype=np.float32):
+    x = _numeric(name, x, dtype)
     want = tail if single else ("B", *tail)
     if x.ndim != len(want) or x.shape[x.ndim - len(tail):] != tail:
         raise ValueError(f"{name} has shape {x.shape}, expected {want}")
@@ -197,9 +198,12 @@ def _warn_if_other_units(cfg: ModelConfig, pts, shown, mean) -> None:
 
 
 def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
-    """Host-side validation; returns batched float32 arrays (K and class_mask may be None)."""
+    """Host-side validation; returns batched float32 arrays (K and class_mask may be None)
+    and, for an orthographic model, each view's kp centred on its visible points in float64
+    with that centre ``offset`` (B, 1, 2) (0 for a perspective model, whose calibration is
+    not translation-invariant): coordinates far from 0 (e.g. 1e6) keep their precision."""
     n = cfg.n_keypoints
-    kp = _numeric("kp", kp)
+    kp = _numeric("kp", kp, np.float64)
     if kp.ndim not in (2, 3) or kp.shape[-1] != 2:
         raise ValueError(f"kp has shape {kp.shape}, expected (N, 2) or (B, N, 2) with N = {n}")
     if kp.shape[-2] != n:
@@ -207,7 +211,8 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     single = kp.ndim == 2
     if not single and kp.shape[0] == 0:
         raise ValueError("kp is an empty batch (B = 0): pass at least one sample")
-    kp = _as_batch("kp", kp, (n, 2), single, finite=False)  # hidden points may hold anything
+    kp = _as_batch("kp", kp, (n, 2), single, finite=False,  # hidden points may hold anything
+                   dtype=np.float64)
     vis = _as_batch("vis", vis, (n,), single)
     if vis.shape[0] != kp.shape[0]:
         raise ValueError(f"vis has batch size {vis.shape[0]} but kp has {kp.shape[0]}")
@@ -240,7 +245,13 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
     _check_values(cfg, kp, vis, K)
-    return single, np.where(vis[..., None] > 0, kp, np.float32(0)), vis, K, class_mask
+    shown = vis[..., None] > 0
+    kp = np.where(shown, kp, 0.0)
+    offset = np.zeros((len(kp), 1, 2))
+    if cfg.projection_type != "perspective":  # the model is translation-equivariant
+        offset = kp.sum(1, keepdims=True) / shown.sum(1, keepdims=True)
+    kp = np.where(shown, kp - offset, 0.0).astype(np.float32)
+    return single, kp, offset, vis, K, class_mask
 
 
 @jax.jit
@@ -283,7 +294,10 @@ def reconstruct(
         orthographic models only. See ``model.refine_camera_and_shape``.
 
     Returns:
-      A ``Reconstruction`` of numpy arrays with the input's leading dimensions.
+      A ``Reconstruction`` of numpy arrays with the input's leading dimensions;
+      ``shape_3d`` and ``kp_reprojected`` are float64 unless ``kp`` is a float32 (or
+      float16) array, so coordinates far from 0 keep their precision (an orthographic
+      model lifts each view centred on its visible points, in float64).
     """
     if turns is not None or turn_span is not None:
         cfg = params.config
@@ -309,7 +323,9 @@ def reconstruct(
             raise ValueError(f"refine_iters={refine_iters} ({problem})")
         params = params.replace(config=dataclasses.replace(
             params.config, test_time_refine_iters=refine_iters))
-    single, kp, vis, K, class_mask = _check_inputs(params.config, kp, vis, K, class_mask)
+    precise = getattr(kp, "dtype", None) not in (np.float32, np.float16)  # lists: float64
+    single, kp, offset, vis, K, class_mask = _check_inputs(params.config, kp, vis, K,
+                                                           class_mask)
     if class_mask is None:
         class_mask = np.ones_like(vis)
     b = kp.shape[0]
@@ -317,6 +333,12 @@ def reconstruct(
     padded = [None if a is None else jnp.asarray(a[idx]) for a in (kp, vis, class_mask, K)]
     out = Reconstruction(*(np.asarray(a[:b]) for a in jax.device_get(
         _reconstruct_batch(params, *padded))))
+    # The centre back on, in the input's precision (float32 for float32 input).
+    dtype = np.float64 if precise else np.float32
+    out = out._replace(
+        shape_3d=np.concatenate([out.shape_3d[..., :2] + offset, out.shape_3d[..., 2:]],
+                                -1).astype(dtype),
+        kp_reprojected=(out.kp_reprojected + offset).astype(dtype))
     bad = np.flatnonzero(~np.isfinite(out.shape_3d).all((1, 2)))
     if bad.size:  # a safety net: the checks above should leave nothing to catch here
         raise ValueError(f"the reconstruction of {_samples(bad)} is not finite")

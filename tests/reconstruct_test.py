@@ -78,6 +78,20 @@ def test_invisible_coordinates_do_not_matter(params):
                                reconstruct(params, kp, vis).shape_canonical, atol=1e-5)
 
 
+def test_coordinates_far_from_zero_keep_their_precision(params):
+    # Georeferenced or mosaic coordinates: a float64 offset of 1e6 (float32 steps of 0.06
+    # there) changes nothing but the offset itself.
+    kp, vis = _inputs(3)
+    base = reconstruct(params, kp, vis)
+    assert base.shape_3d.dtype == np.float32  # float32 in, float32 out
+    far = reconstruct(params, kp.astype(np.float64) + 1e6, vis)
+    assert far.shape_3d.dtype == np.float64 and far.kp_reprojected.dtype == np.float64
+    np.testing.assert_allclose(far.shape_3d[..., :2] - 1e6, base.shape_3d[..., :2], atol=1e-4)
+    np.testing.assert_allclose(far.shape_3d[..., 2], base.shape_3d[..., 2], atol=1e-4)
+    np.testing.assert_allclose(far.kp_reprojected - 1e6, base.kp_reprojected, atol=1e-4)
+    np.testing.assert_allclose(far.shape_canonical, base.shape_canonical, atol=1e-5)
+
+
 def test_turns_override_the_models_own_setting_and_are_checked(params):
     kp, vis = _inputs(4)
     turned = dataclasses.replace(CFG, z_augment=True, test_time_turns=3)
