@@ -261,15 +261,24 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
                           out.kp_reprojected)
 
 
+def _count(name: str, value, least: int) -> int:
+    """``value`` as a Python int (numpy integers too) of at least ``least``, else a one-line
+    error naming ``name``."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer) \
+            or value < least:
+        raise ValueError(f"{name}={value!r} (must be an integer >= {least}, or None)")
+    return int(value)
+
+
 def reconstruct(
     params: C3DPOParams,
     kp: ArrayLike | list,
     vis: ArrayLike | list,
     K: ArrayLike | None = None,
     class_mask: ArrayLike | None = None,
-    turns: int | None = None,
+    turns: int | np.integer | None = None,
     turn_span: str | None = None,
-    refine_iters: int | None = None,
+    refine_iters: int | np.integer | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -303,21 +312,21 @@ def reconstruct(
         cfg = params.config
         if turns is None:
             turns = cfg.test_time_turns
-        if not isinstance(turns, int) or isinstance(turns, bool) or turns < 1:
-            raise ValueError(f"turns={turns!r} (must be an integer >= 1, or None)")
+        turns = _count("turns", turns, 1)
         span = cfg.test_time_turn_span if turn_span is None else turn_span
         if span not in model.TURN_SPANS:
             raise ValueError(f"turn_span={span!r} (must be one of {model.TURN_SPANS}, or None)")
         problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
                                       cfg.z_augment_rot_angle, span)
         if problem:
-            given = "" if turn_span is None else f" with turn_span={span!r}"
+            given = (f" with turn_span={span!r}" if turn_span is not None else
+                     f" with the model's turn_span {span!r} (pass turn_span= to choose another)")
+            problem = problem.replace("model.test_time_turn_span=", "turn_span=")
             raise ValueError(f"turns={turns}{given} ({problem})")
         params = params.replace(config=dataclasses.replace(
             cfg, test_time_turns=turns, test_time_turn_span=span))
     if refine_iters is not None:
-        if not isinstance(refine_iters, int) or isinstance(refine_iters, bool) or refine_iters < 0:
-            raise ValueError(f"refine_iters={refine_iters!r} (must be an integer >= 0, or None)")
+        refine_iters = _count("refine_iters", refine_iters, 0)
         problem = model.refine_problem(refine_iters, params.config.projection_type)
         if problem:
             raise ValueError(f"refine_iters={refine_iters} ({problem})")

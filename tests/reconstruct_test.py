@@ -105,12 +105,18 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
     np.testing.assert_allclose(reconstruct(C3DPOParams(params.variables, turned), kp, vis,
                                            turns=1).shape_3d,
                                reconstruct(plain, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
-    with pytest.raises(ValueError, match=r"^turns=4 \(must be an odd number\)$"):
+    np.testing.assert_allclose(reconstruct(plain, kp, vis, turns=np.int64(3)).shape_3d,
+                               own.shape_3d, rtol=1e-5, atol=1e-4)  # numpy integers too
+    with pytest.raises(ValueError, match=r"^turns=4 with the model's turn_span 'augmentation' "
+                       r"\(pass turn_span= to choose another\) \(must be an odd number\)$"):
         reconstruct(plain, kp, vis, turns=4)
-    with pytest.raises(ValueError, match=r"^turns=3 \(must be used with model.z_augment=True"):
-        reconstruct(params, kp, vis, turns=3)  # trained without in-plane augmentation
-    with pytest.raises(ValueError, match=r"^turns=0 "):
-        reconstruct(plain, kp, vis, turns=0)
+    # Trained without in-plane augmentation: the argument to pass is named.
+    with pytest.raises(ValueError, match=r"^turns=3 with the model's .* \(must be used with "
+                       r"model.z_augment=True .*; turn_span='circle' does not\)\)$"):
+        reconstruct(params, kp, vis, turns=3)
+    for bad in (0, -2, True):
+        with pytest.raises(ValueError, match=r"^turns=.* \(must be an integer >= 1, or None\)$"):
+            reconstruct(plain, kp, vis, turns=bad)
     # Round the circle: no in-plane augmentation needed, any number of copies; the model's
     # own span or the override give the same.
     circle = C3DPOParams(params.variables, dataclasses.replace(
@@ -157,6 +163,8 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params):
                                own.shape_3d, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(reconstruct(refined, kp, vis, refine_iters=0).shape_3d,
                                reconstruct(params, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(reconstruct(params, kp, vis, refine_iters=np.int64(5)).shape_3d,
+                               own.shape_3d, rtol=1e-5, atol=1e-4)  # numpy integers too
     for bad in (-1, True):
         with pytest.raises(ValueError, match=rf"^refine_iters={bad!r} \(must be an integer"):
             reconstruct(params, kp, vis, refine_iters=bad)
