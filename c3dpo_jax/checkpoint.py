@@ -135,16 +135,57 @@ def _restore_args(template, subtree: bool) -> ocp.args.CheckpointArgs:
                                   partial_restore=True)
 
 
+def _path_names(path) -> str:
+    """A pytree path as ``params/phi_trunk/...``, alike for dicts and dataclass fields."""
+    return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k))))
+                    for k in path)
+
+
+def _network_shape_problem(step_dir: str, template) -> str | None:
+    """How the network (``params``, ``batch_stats``) saved in ``step_dir`` differs in
+    shape from ``template``'s, from orbax's metadata alone (None when it does not, or when
+    the metadata cannot be read: the restore then reports the damage)."""
+    try:
+        stored = ocp.StandardCheckpointer().metadata(os.path.join(step_dir, "default"))
+    except Exception:  # noqa: BLE001 (a damaged step: the restore names it)
+        return None
+    stored = getattr(getattr(stored, "item_metadata", stored), "tree", stored)
+    have = {_path_names(p): tuple(leaf.shape) for p, leaf
+            in jax.tree_util.tree_leaves_with_path(stored) if hasattr(leaf, "shape")}
+    diffs = []
+    for p, leaf in jax.tree_util.tree_leaves_with_path(template):
+        name = _path_names(p)
+        if name.split("/")[0] not in ("params", "batch_stats"):
+            continue
+        want = tuple(np.shape(leaf))
+        if have.get(name, want) != want:
+            diffs.append(f"{name}: {have[name]} stored, {want} expected")
+        elif name not in have:
+            diffs.append(f"{name}: not stored")
+    if not diffs:
+        return None
+    more = f"; and {len(diffs) - 2} more" if len(diffs) > 2 else ""
+    return f"{'; '.join(diffs[:2])}{more}"
+
+
 def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool = False):
     """The state saved at ``step`` (``_restore_args``), or None (with a warning naming it)
     when its files fail their checksums, cannot be read or hold non-finite numbers: a
     half-written or half-deleted directory (a kill during a save or the ``max_to_keep``
     clean-up), a truncated, missing, damaged or altered file. The checksums cover every
     file of the step, also when only a subtree is read."""
-    problem = _checksum_problem(os.path.join(str(manager.directory), str(step)))
+    step_dir = os.path.join(str(manager.directory), str(step))
+    problem = _checksum_problem(step_dir)
     if problem is not None:
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
         return None
+    # Not damage but another network: no older step would do, so it is an error.
+    problem = _network_shape_problem(step_dir, template)
+    if problem is not None:
+        workdir = os.path.dirname(os.path.abspath(str(manager.directory)))
+        raise ValueError(f"checkpoint {manager.directory}/{step} holds a network of other shapes "
+                         f"than {os.path.join(workdir, CONFIG_FILE)}'s model section describes "
+                         f"({problem}): that config.json is not the one it was saved with")
     # A reader of its own for each step: orbax's manager fixes how it reads its steps
     # (one item or several) from the first one it reads, so a damaged step folder read
     # first would make every intact one after it unreadable to the same manager.
@@ -174,7 +215,7 @@ def _restore_newest(manager: ocp.CheckpointManager, template, subtree: bool = Fa
         state = _restore(manager, step, template, subtree)
         if state is not None:
             if step != steps[0]:
-                logging.warning("resuming from checkpoint %d, the newest intact one", step)
+                logging.warning("using checkpoint %d, the newest intact one", step)
             return state, step
     if steps:
         raise ValueError(f"no checkpoint under {manager.directory} can be read (steps "

@@ -1,6 +1,7 @@
 """reconstruct(): same numbers as the per-example model, one compile per bucket, clear errors."""
 
 import dataclasses
+import json
 import os
 import pathlib
 
@@ -240,6 +241,27 @@ def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_
         assert all(jax.tree.leaves(same))
     with pytest.raises(FileNotFoundError, match="neither a workdir"):
         load(str(tmp_path))
+
+
+def test_load_refuses_in_one_line_a_config_that_does_not_describe_the_checkpoint(
+        params, tmp_path, capfd):
+    # A hand-edited config.json (or one of another library version): the checkpoint holds
+    # a basis of 3, the config says 4.
+    workdir = save_workdir(params, str(tmp_path / "w"))
+    path = os.path.join(workdir, "config.json")
+    with open(path) as f:
+        config = json.load(f)
+    config["model"]["shape_basis_size"] = 4
+    with open(path, "w") as f:
+        json.dump(config, f)
+    capfd.readouterr()
+    with pytest.raises(ValueError) as err:
+        load(workdir)
+    message = str(err.value)
+    assert "holds a network of other shapes than " + path in message
+    assert "alpha_layer/kernel: (16, 3) stored, (16, 4) expected" in message
+    assert "delete" not in message and "\n" not in message
+    assert "Traceback" not in capfd.readouterr().err  # orbax never tried to read it
 
 
 def _same(a, b) -> bool:
