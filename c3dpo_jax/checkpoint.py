@@ -32,6 +32,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 from absl import logging
+from etils import epath
 
 CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoints"
@@ -145,11 +146,14 @@ def _network_shape_problem(step_dir: str, template) -> str | None:
     """How the network (``params``, ``batch_stats``) saved in ``step_dir`` differs in
     shape from ``template``'s, from orbax's metadata alone (None when it does not, or when
     the metadata cannot be read: the restore then reports the damage)."""
+    handler = ocp.StandardCheckpointHandler()
     try:
-        stored = ocp.StandardCheckpointer().metadata(os.path.join(step_dir, "default"))
+        stored = handler.metadata(epath.Path(step_dir) / "default")
     except Exception:  # noqa: BLE001 (a damaged step: the restore names it)
         return None
-    stored = getattr(getattr(stored, "item_metadata", stored), "tree", stored)
+    finally:
+        handler.close()
+    stored = getattr(stored, "tree", stored)
     have = {_path_names(p): tuple(leaf.shape) for p, leaf
             in jax.tree_util.tree_leaves_with_path(stored) if hasattr(leaf, "shape")}
     diffs = []

@@ -1,6 +1,7 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
+      [--refine_iters=0] [--turns=T]
 
 (or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
@@ -45,6 +46,12 @@ def _define_flags() -> dict:
         "y_up": flags.DEFINE_bool(
             "y_up", None, "Pictures: the input's y axis points up (motion capture) rather than "
             "down (image pixels) (default: the input's or the training data's setting)."),
+        "refine_iters": flags.DEFINE_integer(
+            "refine_iters", None, "Levenberg-Marquardt steps refining each view at inference "
+            "(0: Phi's own output, the release's single pass; default: the model's setting)."),
+        "turns": flags.DEFINE_integer(
+            "turns", None, "Copies of each view turned in-plane whose median depth is kept "
+            "(1: one pass; default: the model's setting; see reconstruct's turns)."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 
@@ -140,18 +147,38 @@ def _figures(rec, inputs, out_dir: str, n: int, edges, y_up: bool, unit: str) ->
         y_up=y_up, unit=unit, titles=[f"sample {i}" for i in inputs["index"]])
 
 
+def _check_figures(figures: str | None, n_figures: int, skeleton, y_up) -> None:
+    """The picture flags make sense together, before any work."""
+    if not figures:
+        if skeleton is not None or y_up is not None:
+            logging.warning("--skeleton and --y_up shape the pictures only: give --figures=DIR "
+                            "to draw them")
+        return
+    if n_figures < 1:
+        raise ValueError(f"--n_figures={n_figures} (must be >= 1 with --figures)")
+    if os.path.exists(figures) and not os.path.isdir(figures):
+        raise ValueError(f"--figures={figures!r} is a file; it names a directory for the "
+                         "pictures")
+
+
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
-        n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None
-        ) -> Reconstruction:
+        n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None,
+        refine_iters: int | None = None, turns: int | None = None) -> Reconstruction:
     """What the command line does; returns the reconstructions it wrote."""
     _check_output(output)  # before the work, not after it
+    _check_figures(figures, n_figures, skeleton, y_up)
     params = load(workdir)
     inputs = read_input(input_path)
     if figures:  # a bad --skeleton fails before the work too
         edges, y_up, unit = picture_style(workdir, inputs, skeleton, y_up)
     perspective = params.config.projection_type == "perspective"
     K = inputs.get("K") if perspective else None
-    rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"))
+    if perspective and K is None:
+        raise ValueError(f"{workdir} is a perspective model: each input needs its intrinsics, "
+                         "a 'K' field (3 x 3) in every entry of the release's JSON format "
+                         "(COCO annotations have none)")
+    rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"),
+                      turns=turns, refine_iters=refine_iters)
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:

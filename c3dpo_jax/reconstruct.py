@@ -242,6 +242,13 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
         if singular.size:
             raise ValueError(f"K of {_samples(singular)} is singular: intrinsics have a focal "
                              "length on the diagonal and [0, 0, 1] as the last row")
+        big = np.abs(K).max((1, 2))
+        skewed = np.flatnonzero(np.abs(K[:, 2, :2]).max(1) > 1e-6 * big)
+        if skewed.size:
+            row = K[skewed[0], 2].tolist()
+            raise ValueError(f"K of {_samples(skewed)} has the last row {row}: intrinsics have "
+                             "[0, 0, 1] there and the principal point in the last column (a "
+                             "transposed K?)")
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
     _check_values(cfg, kp, vis, K)

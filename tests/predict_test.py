@@ -142,3 +142,30 @@ def test_pictures_take_skeleton_and_up_from_flags_else_input_else_training(setup
                                 "annotations": [{"keypoints": [1, 2, 2, 3, 4, 2]}]}))
     assert predict.read_input(str(coco))["style"] == {"y_up": False, "unit": "px",
                                                       "skeleton": [(0, 1)]}
+
+
+def test_inference_flags_and_picture_flags_are_checked_before_the_work(setup, tmp_path, caplog):
+    root, params, workdir, data = setup
+    entries = [{"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist()}
+               for i in range(2)]
+    path = tmp_path / "poses.json"
+    path.write_text(json.dumps(entries))
+    out = str(tmp_path / "o.npz")
+    # --refine_iters / --turns reach reconstruct (the model here refines nothing: compare
+    # with what reconstruct gives for the same arguments).
+    rec = predict.run(workdir, str(path), out, refine_iters=0, turns=1)
+    np.testing.assert_allclose(rec.shape_3d, reconstruct(params, data.kp[:2], data.vis[:2],
+                                                         refine_iters=0).shape_3d, atol=1e-5)
+    with pytest.raises(ValueError, match=r"^turns=0 "):
+        predict.run(workdir, str(path), out, turns=0)
+    # Picture flags that cannot work are refused before anything is computed or written.
+    (tmp_path / "a_file.png").write_text("")
+    for kwargs, match in [({"figures": str(tmp_path / "a_file.png")}, "is a file"),
+                          ({"figures": str(tmp_path / "figs"), "n_figures": 0},
+                           r"--n_figures=0 \(must be >= 1")]:
+        with pytest.raises(ValueError, match=match):
+            predict.run("no/such/workdir", str(path), out, **kwargs)
+    assert not (tmp_path / "figs").exists()
+    with caplog.at_level("WARNING"):
+        predict.run(workdir, str(path), out, skeleton="h36m")
+    assert "--skeleton and --y_up shape the pictures only" in caplog.text

@@ -229,6 +229,9 @@ def test_perspective_model_needs_intrinsics():
     flat = np.stack([K, K * np.array([1, 1, 0], np.float32)[:, None]])  # a zero last row
     with pytest.raises(ValueError, match=r"^K of sample\(s\) \[1\] is singular"):
         reconstruct(p, kp, vis, flat)
+    with pytest.raises(ValueError, match=r"^K of sample\(s\) \[0, 1\] has the last row "
+                       r"\[200.0, 200.0, 1.0\]: .* \(a transposed K\?\)$"):
+        reconstruct(p, kp, vis, K.T)
 
 
 def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_path):
