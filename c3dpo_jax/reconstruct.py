@@ -228,6 +228,12 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
     if class_mask is not None:
         one = np.ndim(class_mask) == 1
         class_mask = np.broadcast_to(_as_batch("class_mask", class_mask, (n,), one), vis.shape)
+        if np.any((class_mask != 0) & (class_mask != 1)):
+            raise ValueError("class_mask must contain only 0 and 1")
+        outside = np.flatnonzero((vis * (1 - class_mask)).sum(1) > 0)
+        if outside.size:  # the model's shape is 0 there: those points are not lifted
+            logging.warning("%s have visible keypoints outside their class_mask: the model "
+                            "lifts only the points of its class", _samples(outside))
     if cfg.projection_type == "perspective":
         if K is None:
             raise ValueError(

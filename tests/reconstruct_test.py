@@ -213,6 +213,15 @@ def test_bad_input_raises_a_clear_value_error(params, kp_shape, vis_shape, edit,
         reconstruct(params, kp, vis, K)
 
 
+def test_class_mask_is_checked(params, caplog):
+    kp, vis = _inputs(2)
+    with pytest.raises(ValueError, match=r"^class_mask must contain only 0 and 1$"):
+        reconstruct(params, kp, vis, class_mask=np.full(7, 0.5))
+    with caplog.at_level("WARNING"):
+        reconstruct(params, kp, vis, class_mask=np.zeros(7))
+    assert "sample(s) [0, 1] have visible keypoints outside their class_mask" in caplog.text
+
+
 def test_perspective_model_needs_intrinsics():
     cfg = dataclasses.replace(CFG, projection_type="perspective", argmin_translation=False)
     p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)
