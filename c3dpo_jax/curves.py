@@ -40,6 +40,10 @@ def _test_points(results: dict, key: str) -> tuple[list[int], list[float]]:
     return [s for s, _ in points], [v for _, v in points]
 
 
+# The test score drawn: the 3D error, else (2D-only data, protocol "none") the 2D one.
+_TEST_LABELS = {"mpjpe": "test MPJPE", "reprojection": "test 2D reprojection error"}
+
+
 def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
     steps, values = _test_points(results, key)
     ax.plot(steps, values, marker="o", color="tab:blue", label=f"C3DPO ({values[-1]:.3g})")
@@ -49,7 +53,7 @@ def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
             ax.axhline(scores[key], color="0.35", ls=next(styles, "--"), lw=1.2,
                        label=f"{name} ({scores[key]:.3g})")
     ax.set_xlabel("step")
-    ax.set_ylabel(f"test {key.upper()}")
+    ax.set_ylabel(_TEST_LABELS[key])
     tops = [*values, *(s[key] for s in results.get("baselines", {}).values() if key in s)]
     ax.set_ylim(0, 1.08 * max(tops))
     ax.grid(alpha=0.3)
@@ -58,8 +62,9 @@ def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
 
 
 def plot_training_curves(path: str):
-    """The losses (log scale) and, when the run was evaluated, the test MPJPE with the
-    baselines' as horizontal lines; ``path`` is a workdir or its ``metrics.jsonl``."""
+    """The losses (log scale) and, when the run was evaluated, the test MPJPE (2D-only
+    data: the test 2D reprojection error) with the baselines' as horizontal lines; ``path``
+    is a workdir or its ``metrics.jsonl``."""
     workdir = path if os.path.isdir(path) else os.path.dirname(path)
     metrics = os.path.join(path, "metrics.jsonl") if os.path.isdir(path) else path
     records = read_records(metrics)
@@ -70,7 +75,8 @@ def plot_training_curves(path: str):
     if os.path.exists(results_path):
         with open(results_path) as f:
             results = json.load(f)
-    evaluated = bool(_test_points(results, "mpjpe")[0])
+    key = next((k for k in _TEST_LABELS if _test_points(results, k)[0]), None)
+    evaluated = key is not None
     fig, axes = pyplot().subplots(1, 1 + evaluated, figsize=(6 + 5 * evaluated, 4), squeeze=False)
     ax = axes[0, 0]
     steps = [r["step"] for r in records]
@@ -85,6 +91,6 @@ def plot_training_curves(path: str):
     ax.legend(fontsize=8)
     ax.set_title("training losses (means over each logging interval)", fontsize=10)
     if evaluated:
-        _plot_test_error(axes[0, 1], results)
+        _plot_test_error(axes[0, 1], results, key)
     fig.tight_layout()
     return fig

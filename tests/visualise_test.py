@@ -136,6 +136,15 @@ def test_training_curves_show_losses_and_test_error_with_baselines(run, tmp_path
     fig = curves.plot_training_curves(str(tmp_path / "metrics.jsonl"))
     assert len(fig.axes) == 1
     visualise._plt().close(fig)
+    # 2D-only data (protocol "none"): the test 2D reprojection error instead.
+    (tmp_path / "eval_results.json").write_text(json.dumps({
+        "history": [{"step": 10, "reprojection": 0.2}], "final": {"step": 15, "reprojection": 0.1},
+        "baselines": {}}))
+    fig = curves.plot_training_curves(str(tmp_path / "metrics.jsonl"))
+    _, test = fig.axes
+    assert test.get_ylabel() == "test 2D reprojection error"
+    assert test.lines[0].get_ydata().tolist() == [0.2, 0.1]
+    visualise._plt().close(fig)
 
 
 def test_run_style_from_the_data_file_or_the_built_in_dataset(tmp_path):
