@@ -41,7 +41,7 @@ _DATASET_STYLES = {"humans": {"skeleton": "h36m", "y_up": True, "unit": "m"},
 _PRED, _GT = "tab:blue", "0.55"
 
 
-def align_ground_truth(shape, gt) -> tuple[np.ndarray, np.ndarray, float]:
+def align_ground_truth(shape, gt) -> tuple[np.ndarray, np.ndarray | None, float]:
     """Prediction and truth as the plots draw them, and the sample's MPJPE.
 
     Both get their mean depth removed (the ``default`` protocol), the truth the depth sign
@@ -49,8 +49,13 @@ def align_ground_truth(shape, gt) -> tuple[np.ndarray, np.ndarray, float]:
     Returns ``(shape, gt, mpjpe)``; ``gt`` None gives ``(centred shape, None, nan)``.
     """
     shape = np.asarray(shape, np.float64)
+    if shape.ndim != 2 or shape.shape[1] != 3:
+        raise ValueError(f"a picture draws one shape (N, 3), got {shape.shape} (index a batch: "
+                         "rec.shape_3d[i])")
     if gt is None:
         return shape - shape.mean(0), None, float("nan")
+    if np.shape(gt) != shape.shape:
+        raise ValueError(f"the ground truth has shape {np.shape(gt)}, the shape {shape.shape}")
     ones = np.ones((1, len(shape)))
     pred = evaluation.center_depth(shape[None], ones)[0]
     gt = evaluation.center_depth(np.asarray(gt, np.float64)[None], ones)[0]
@@ -155,6 +160,7 @@ def plot_reconstruction_3d(shape, gt=None, edges=(), views=VIEWS, kp=None, vis=N
     """
     plt = _plt()
     shape, gt, err = align_ground_truth(shape, gt)
+    edges = skeletons.skeleton(edges, len(shape)) if len(edges) else edges  # indices checked
     vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
     panels = len(views) + (kp is not None)
     fig = plt.figure(figsize=(3.8 * panels, 4.2))
@@ -200,6 +206,7 @@ def save_rotation_gif(shape, path: str, edges=(), gt=None, vis=None, y_up: bool 
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     shape, gt, err = align_ground_truth(shape, gt)
+    edges = skeletons.skeleton(edges, len(shape)) if len(edges) else edges  # indices checked
     vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
     points = shape if gt is None else np.concatenate([shape, gt])
     fig = plt.figure(figsize=(4, 4.4))
@@ -310,6 +317,9 @@ def write_run_figures(workdir: str, data=None, reconstruction=None, n_samples: i
         raise ValueError("write_run_figures draws data with its reconstruction: pass both "
                          "(reconstruction=reconstruct.reconstruct_data(params, data, n)) or "
                          "neither")
+    if data is not None and np.shape(reconstruction.shape_3d)[-2:] != (data.n_keypoints, 3):
+        raise ValueError(f"the reconstruction's shapes are {np.shape(reconstruction.shape_3d)}, "
+                         f"the data's {data.n_keypoints} keypoints: not the same views")
     out_dir = out_dir or os.path.join(workdir, "figures")
     os.makedirs(out_dir, exist_ok=True)
     paths = []

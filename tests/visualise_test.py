@@ -196,3 +196,13 @@ def test_a_plotting_failure_only_logs_a_warning(tmp_path, monkeypatch):
     monkeypatch.setattr(logging, "warning", lambda msg, *args: messages.append(msg % args))
     main._write_figures(None, str(tmp_path))  # no config: load_splits fails inside
     assert messages and "could not write figures" in messages[0]
+
+
+def test_the_plots_name_a_wrong_shape_or_skeleton_in_one_line(tmp_path):
+    shape = np.zeros((2, 4, 3))  # a batch where one shape is drawn
+    with pytest.raises(ValueError, match=r"one shape \(N, 3\), got \(2, 4, 3\) \(index a batch"):
+        visualise.plot_reconstruction_3d(shape)
+    with pytest.raises(ValueError, match=r"ground truth has shape \(5, 3\), the shape \(4, 3\)"):
+        visualise.plot_reconstruction_3d(shape[0], np.zeros((5, 3)))
+    with pytest.raises(ValueError, match=r"joins keypoints \[\(0, 7\)\] but the data has 4"):
+        visualise.save_rotation_gif(shape[0], str(tmp_path / "a.gif"), edges=[(0, 7)])
