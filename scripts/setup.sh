@@ -9,6 +9,8 @@ fi
 stamp=.venv/.c3dpo_installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet -e ".[test,viz]"
+  # PYTHONWARNINGS reaches pip's build of the package: setuptools' notice that an editable
+  # install exists would otherwise be the first thing the quick start prints.
+  PYTHONWARNINGS=ignore .venv/bin/python -m pip install --quiet -e ".[test,viz]"
   touch "$stamp"
 fi
