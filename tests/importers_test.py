@@ -50,6 +50,58 @@ def test_load_sequence_reads_npz_and_mat_layouts(tmp_path):
         importers.load_sequence(str(tmp_path / "bad.npz"))
 
 
+def test_an_array_layout_is_named_or_refused_when_its_shape_is_ambiguous(tmp_path, caplog):
+    x = _sequence(f=60, k=9)
+    # MATLAB's (K, 3, F) has the shape of an (F, 3, K) array: the log says what was read,
+    # and --layout reads it the other way.
+    scipy.io.savemat(tmp_path / "k3f.mat", {"X": np.transpose(x, (1, 2, 0))})
+    with caplog.at_level("INFO"):
+        importers.load_sequence(str(tmp_path / "k3f.mat"))
+    assert "read as F3K: F=9 frames of K=60 points (fewer frames than points" in caplog.text
+    np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "k3f.mat"), layout="K3F"),
+                               x)
+    # Three points: (F, 3, 3) could be either of two layouts, so it is refused.
+    np.savez(tmp_path / "k3.npz", X=x[:, :3])
+    with pytest.raises(ValueError, match=r"could be several layouts; pass the axis order"):
+        importers.load_sequence(str(tmp_path / "k3.npz"))
+    np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "k3.npz"), layout="FK3"),
+                               x[:, :3])
+    # Several arrays: the points and the clips are chosen by name, from the command line too.
+    np.savez(tmp_path / "p.npz", pose=x, shot=np.repeat([0, 1, 2], 20), fps=30.0)
+    with pytest.raises(ValueError, match=r"no array 'X'; it holds \['fps', 'pose', 'shot'\] "
+                       r"\(choose one: --key"):
+        importers.load_sequence(str(tmp_path / "p.npz"))
+    importers.main(["sequence", str(tmp_path / "p.npz"), "--out_dir", str(tmp_path), "--key",
+                    "pose", "--clip_key", "shot", "--hold_out", "clips", "--views_per_frame",
+                    "2"])
+    test = json_dataset.load(str(tmp_path / "p_test.json"))
+    assert test.n_keypoints == 9 and len(test) == 20 * 2  # one whole clip of three
+
+
+def test_sequences_that_cannot_make_a_split_are_refused_at_import(tmp_path):
+    x = _sequence(f=60, k=9)
+    for seq, kwargs, match in [
+            (x[:1], {}, "the split of 1 frame\\(s\\) leaves no test frame"),
+            (np.ones((20, 6, 3)), {}, "6 point\\(s\\) coincide in every frame"),
+            (x[:, :1], {}, "1 point\\(s\\) coincide"),
+            (x, {"views_per_frame": 0}, "views_per_frame=0"),
+            (x, {"hold_out": "clips"}, "hold_out='clips' needs per-frame clip ids")]:
+        with pytest.raises(ValueError, match=match):
+            importers.views_from_sequence(seq, **kwargs)
+
+
+def test_the_up_axis_is_turned_to_y_by_a_rotation():
+    x = _sequence(f=5, k=4)
+    for up in "xyz":
+        unit = np.eye(3)["xyz".index(up)]
+        np.testing.assert_allclose(importers.to_y_up(unit[None, None], up)[0, 0], [0, 1, 0],
+                                   atol=1e-12)
+        turned = importers.to_y_up(x, up)  # a rotation: distances and handedness kept
+        np.testing.assert_allclose(np.linalg.norm(turned[:, 1] - turned[:, 0], axis=-1),
+                                   np.linalg.norm(x[:, 1] - x[:, 0], axis=-1))
+        assert np.linalg.det(importers.to_y_up(np.eye(3)[None], up)[0]) == pytest.approx(1.0)
+
+
 def test_views_split_by_frame_blocks_and_normalise_scale():
     x = _sequence(f=50)
     train_d, test_d = importers.views_from_sequence(x, views_per_frame=3, test_fraction=0.2,
@@ -207,3 +259,30 @@ def test_the_import_command_reports_input_errors_in_one_line(tmp_path, monkeypat
                                      "--verbose"])
     with pytest.raises(ValueError, match="NaN or inf"):  # --verbose: the exception itself
         importers.cli_main()
+
+
+def test_awkward_bvh_and_coco_files_are_read_or_named():
+    # A joint whose own name ends in "_end" is a joint; End Sites are left out unless asked.
+    named = TINY_BVH.replace("JOINT knee", "JOINT knee_end")
+    assert importers.bvh_positions(named)[1] == ["hip", "knee_end"]
+    assert importers.bvh_positions(named, include_end_sites=True)[1] == [
+        "hip", "knee_end", "knee_end_end"]
+    with pytest.raises(ValueError, match=r"header says 2 frames of 9 channels, the MOTION "
+                       r"section holds 1\.6 frames' worth of numbers: is the file cut short"):
+        importers.parse_bvh(TINY_BVH[:-10])
+    # COCO: an empty keypoint list is passed over like an annotation without keypoints; the
+    # categories are named where they are the fix.
+    ann = lambda cat, k: {"category_id": cat, "keypoints": [1, 2, 2] * k}  # noqa: E731
+    obj = {"categories": [{"id": 1, "skeleton": [[1, 2]]}, {"id": 2, "skeleton": [[2, 3]]}],
+           "annotations": [ann(2, 3), {"category_id": 2, "keypoints": []}, ann(2, 3)]}
+    data, index = importers.read_coco(obj)
+    assert index.tolist() == [0, 2] and data.n_keypoints == 3
+    assert importers.coco_skeleton(obj) == [(1, 2)]  # the annotations' category, not the first
+    with pytest.raises(ValueError, match=r"of category_id 7 \(the keypoint annotations' "
+                       r"categories: 2\)"):
+        importers.read_coco(obj, category_id=7)
+    obj["annotations"] += [ann(1, 2)]
+    assert importers.coco_skeleton(obj) is None  # several categories: no one skeleton
+    with pytest.raises(ValueError, match=r"annotation 3 has 2 keypoints, most others 3 .*; they "
+                       r"hold 2 categories: keep one with category_id \(--category_id\)"):
+        importers.read_coco(obj)

@@ -1,9 +1,10 @@
 """Users' own keypoints -> the release's JSON format (numpy only; scipy for .mat).
 
-- 3D sequences (``.npz`` with ``X`` (F, 3, K), as the classic NRSfM sequences, or ``.mat``
-  with ``X`` (F, 3, K), (F, K, 3) or (3F, K)): each frame is centred, the sequence is
-  scaled to unit RMS radius, and seen by ``views_per_frame`` random cameras; train and
-  test take different blocks of frames, so test poses are unseen.
+- 3D sequences (``.npz`` or ``.mat`` with ``X`` (F, 3, K), as the classic NRSfM
+  sequences, (F, K, 3), (3F, K), or another axis order named by ``layout``): turned so
+  that the ``up`` axis is y, each frame centred, the sequence scaled to unit RMS radius,
+  and seen by ``views_per_frame`` random cameras; train and test take different blocks of
+  frames, so test poses are unseen.
 - BVH motion capture: joint positions by forward kinematics, then views as above.
 - COCO-style keypoints (``annotations[i].keypoints`` = [x, y, v] * K, v in {0, 1, 2}):
   a 2D-only training set (v >= ``min_v`` is visible).
@@ -36,38 +37,78 @@ from c3dpo_jax.data import json_dataset
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_rotations
 
+# The axis orders of a 3D array a sequence may come in: "F3K" is (frames, xyz, points).
+LAYOUTS = ("F3K", "FK3", "K3F", "KF3", "3FK", "3KF")
 
-def load_sequence(path: str, key: str = "X") -> np.ndarray:
-    """A 3D point sequence (F, K, 3) from ``.npz`` or ``.mat``."""
+
+def _arrays(path: str) -> dict[str, np.ndarray]:
+    """The named arrays of a ``.npz`` or ``.mat`` file."""
     if not path.endswith((".npz", ".mat")):
         raise ValueError(f"{path}: a sequence is read from a .npz or .mat file (an array X of "
                          "shape (F, 3, K), (F, K, 3) or (3F, K))")
-    if path.endswith(".mat"):
-        import scipy.io
-
-        arrays = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
-    else:
+    if path.endswith(".npz"):
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+            return {k: z[k] for k in z.files}
+    import scipy.io
+
+    try:
+        contents = scipy.io.loadmat(path)
+    except NotImplementedError as err:  # MATLAB v7.3 files are HDF5
+        raise ValueError(f"{path}: {err} (or save it from MATLAB with -v7)") from None
+    return {k: v for k, v in contents.items() if not k.startswith("__")}
+
+
+def _guess_layout(shape: tuple[int, ...], path: str, key: str) -> str:
+    """The layout of a 3D array: the one axis of size 3 is xyz, and F before K
+    (``LAYOUTS``); more than one axis of size 3, or xyz first, is ambiguous."""
+    threes = [i for i, n in enumerate(shape) if n == 3]
+    if len(threes) != 1 or threes[0] == 0:
+        raise ValueError(f"{path}: array {key!r} has shape {shape}, which could be several "
+                         f"layouts; pass the axis order (--layout: one of {', '.join(LAYOUTS)}, "
+                         "F frames, 3 coordinates, K points)")
+    return "F3K" if threes[0] == 1 else "FK3"
+
+
+def load_sequence(path: str, key: str = "X", layout: str | None = None) -> np.ndarray:
+    """A 3D point sequence (F, K, 3) from ``.npz`` or ``.mat``: the array ``key`` (or the
+    file's only array), whose axis order ``layout`` (one of ``LAYOUTS``) is guessed when
+    None: (F, 3, K) or (F, K, 3) for a 3D array (an ambiguous shape is an error), the
+    classic NRSfM stacking (3F, K) for a 2D one. The reading is logged (F and K)."""
+    arrays = _arrays(path)
     if key not in arrays:
         if len(arrays) != 1:
-            raise ValueError(f"{path}: no array {key!r}; it holds {sorted(arrays)} (pass key=)")
+            raise ValueError(f"{path}: no array {key!r}; it holds {sorted(arrays)} (choose one: "
+                             "--key, or key=)")
         key = next(iter(arrays))
     x = np.asarray(arrays[key], np.float64)
-    if x.ndim == 3 and x.shape[1] == 3:
-        return np.swapaxes(x, 1, 2)
-    if x.ndim == 3 and x.shape[2] == 3:
-        return x
-    if x.ndim == 2 and x.shape[0] % 3 == 0:  # classic NRSfM stacking: rows x1, y1, z1, ...
-        return np.swapaxes(x.reshape(-1, 3, x.shape[1]), 1, 2)
-    raise ValueError(f"{path}: array {key!r} has shape {x.shape}; expected (F, 3, K), "
-                     "(F, K, 3) or (3F, K)")
+    if layout is not None and layout not in LAYOUTS:
+        raise ValueError(f"layout={layout!r}: one of {', '.join(LAYOUTS)}")
+    if x.ndim == 2 and layout is None and x.shape[0] % 3 == 0:
+        # Classic NRSfM stacking: rows x1, y1, z1, x2, ...
+        x, layout = np.swapaxes(x.reshape(-1, 3, x.shape[1]), 1, 2), "3F x K"
+    elif x.ndim == 3:
+        layout = layout or _guess_layout(x.shape, path, key)
+        x = np.transpose(x, [layout.index(c) for c in "FK3"])
+    else:
+        raise ValueError(f"{path}: array {key!r} has shape {x.shape}; expected (F, 3, K), "
+                         "(F, K, 3) (another order: --layout) or (3F, K)")
+    if x.shape[2] != 3:
+        raise ValueError(f"{path}: array {key!r} read as {layout} has {x.shape[2]} coordinates "
+                         "per point, not 3")
+    logging.info("%s: array %r read as %s: F=%d frames of K=%d points%s", path, key, layout,
+                 x.shape[0], x.shape[1], "" if x.shape[0] >= x.shape[1] else
+                 " (fewer frames than points: if the array's axes are the other way round, "
+                 "pass --layout)")
+    return x
 
 
 def _normalise(x: np.ndarray) -> tuple[np.ndarray, float]:
     """Centres each frame; divides by the sequence's mean RMS radius (returned)."""
     x = x - x.mean(1, keepdims=True)
     scale = float(np.sqrt((x**2).sum(-1).mean(-1)).mean())
+    if not scale > 0:
+        raise ValueError(f"the sequence's {x.shape[1]} point(s) coincide in every frame: there "
+                         "is no shape to see (a sequence needs two distinct points or more)")
     return x / scale, scale
 
 
@@ -108,11 +149,25 @@ def clip_split(clip: np.ndarray, test_fraction: float, n_blocks: int, seed: int,
 
 
 def load_clips(path: str, key: str = "clip") -> np.ndarray | None:
-    """The per-frame clip ids (F,) of an ``.npz`` sequence, or None when it has none."""
-    if not path.endswith(".npz"):
-        return None
-    with np.load(path, allow_pickle=False) as z:
-        return np.asarray(z[key]) if key in z.files else None
+    """The per-frame clip ids (F,) of a ``.npz`` or ``.mat`` sequence, or None when it has
+    none."""
+    clip = _arrays(path).get(key)
+    if clip is not None and np.ndim(clip) == 2 and 1 in np.shape(clip):
+        clip = np.reshape(clip, -1)  # MATLAB stores a vector as (1, F) or (F, 1)
+    return clip
+
+
+# Proper rotations that bring the named axis of a sequence to y, the up of upright cameras.
+_TO_Y_UP = {"y": np.eye(3), "z": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
+            "x": np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])}
+
+
+def to_y_up(x: np.ndarray, up: str) -> np.ndarray:
+    """A sequence ``x`` (F, K, 3) turned so that its ``up`` axis ("x", "y" or "z") is y, by
+    a rotation (the body keeps its handedness)."""
+    if up not in _TO_Y_UP:
+        raise ValueError(f"up={up!r}: one of x, y, z")
+    return x @ _TO_Y_UP[up].T
 
 
 def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_visible, rng,
@@ -155,11 +210,20 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
             "or drop those frames)")
     x, scale = _normalise(x) if normalise else (x - x.mean(1, keepdims=True), 1.0)
     if clip is None:
+        if hold_out != "blocks":
+            raise ValueError(f"hold_out={hold_out!r} needs per-frame clip ids (a 'clip' array "
+                             "beside the sequence); this sequence has none")
         test = frame_blocks_split(len(x), test_fraction, n_blocks, seed)
     else:
         if np.shape(clip) != (len(x),):
             raise ValueError(f"clip has shape {np.shape(clip)}, expected ({len(x)},)")
         test = clip_split(clip, test_fraction, n_blocks, seed, hold_out)
+    if test.all() or not test.any():
+        empty = "train" if test.all() else "test"
+        raise ValueError(f"the split of {len(x)} frame(s) leaves no {empty} frame (a sequence "
+                         "needs two frames, and a clip two frames to be split inside it)")
+    if views_per_frame < 1:
+        raise ValueError(f"views_per_frame={views_per_frame} (must be >= 1)")
     rng = np.random.default_rng(seed + 1)
     common = dict(views_per_frame=views_per_frame, cameras=cameras, max_elevation=max_elevation,
                   occlusion=occlusion, noise=noise, min_visible=min(min_visible, x.shape[1]),
@@ -169,14 +233,16 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
 
 
 def parse_bvh(text: str):
-    """BVH -> (joint names, parents, offsets (J, 3), channels per joint, motion (F, C))."""
+    """BVH -> (joint names, parents, offsets (J, 3), channels per joint, motion (F, C),
+    whether each is an End Site (named after its joint: ``JOINT_end``))."""
     tokens = re.findall(r"[^\s{}]+|[{}]", text)
-    names, parents, offsets, channels, stack = [], [], [], [], []
+    names, parents, offsets, channels, stack, end_sites = [], [], [], [], [], []
     i = 0
     while i < len(tokens) and tokens[i] != "MOTION":
         tok = tokens[i]
         if tok in ("ROOT", "JOINT", "End"):
             names.append(tokens[i + 1] if tok != "End" else f"{names[stack[-1]]}_end")
+            end_sites.append(tok == "End")
             parents.append(stack[-1] if stack else -1)
             channels.append([])
             offsets.append(None)
@@ -202,14 +268,18 @@ def parse_bvh(text: str):
     if m is None:
         raise ValueError("BVH file has no MOTION section with 'Frames:' and 'Frame Time:'")
     values = np.array(m.group(2).split(), np.float64)
-    n_ch = sum(len(c) for c in channels)
-    motion = values.reshape(int(m.group(1)), n_ch)
-    return names, parents, np.array(offsets), channels, motion
+    n_ch, n_frames = sum(len(c) for c in channels), int(m.group(1))
+    if values.size != n_frames * n_ch:
+        raise ValueError(f"the BVH header says {n_frames} frames of {n_ch} channels, the MOTION "
+                         f"section holds {values.size / max(n_ch, 1):.1f} frames' worth of "
+                         "numbers: is the file cut short, or its Frames: line wrong?")
+    motion = values.reshape(n_frames, n_ch)
+    return names, parents, np.array(offsets), channels, motion, end_sites
 
 
 def bvh_positions(text: str, include_end_sites: bool = False):
     """Global joint positions (F, J, 3) of a BVH file by forward kinematics, and names."""
-    names, parents, offsets, channels, motion = parse_bvh(text)
+    names, parents, offsets, channels, motion, end_sites = parse_bvh(text)
     f = len(motion)
     pos, rot = np.zeros((f, len(names), 3)), np.zeros((f, len(names), 3, 3))
     col = 0
@@ -229,22 +299,32 @@ def bvh_positions(text: str, include_end_sites: bool = False):
         else:
             pos[:, j] = pos[:, p] + np.einsum("fij,fj->fi", rot[:, p], local_t)
             rot[:, j] = rot[:, p] @ local_r
-    keep = [j for j, n in enumerate(names) if include_end_sites or not n.endswith("_end")]
+    keep = [j for j, end in enumerate(end_sites) if include_end_sites or not end]
     return pos[:, keep], [names[j] for j in keep]
 
 
 def bvh_bones(text: str, include_end_sites: bool = False) -> list[tuple[int, int]]:
     """(parent, child) index pairs of the joints ``bvh_positions`` returns."""
-    names, parents, *_ = parse_bvh(text)
-    keep = [j for j, n in enumerate(names) if include_end_sites or not n.endswith("_end")]
+    _, parents, *_, end_sites = parse_bvh(text)
+    keep = [j for j, end in enumerate(end_sites) if include_end_sites or not end]
     new = {j: k for k, j in enumerate(keep)}
     return skeletons.from_parents([new.get(parents[j], -1) for j in keep])
 
 
 def coco_skeleton(obj: dict, category_id=None) -> list[tuple[int, int]] | None:
-    """The (0-based) skeleton of the COCO category (COCO's pairs count from 1), if any."""
-    for cat in obj.get("categories", []):
-        if cat.get("skeleton") and category_id in (None, cat.get("id")):
+    """The (0-based) skeleton of the COCO category (COCO's pairs count from 1), if any:
+    ``category_id``'s, else that of the one category the keypoint annotations belong to
+    (annotations that name none: the file's only category; none when they name several)."""
+    categories = obj.get("categories", [])
+    if category_id is None:
+        used = {a.get("category_id") for a in obj.get("annotations", []) if a.get("keypoints")}
+        if used == {None} and len(categories) == 1:
+            used = {categories[0].get("id")}
+        if len(used) != 1:
+            return None
+        category_id = used.pop()
+    for cat in categories:
+        if cat.get("skeleton") and cat.get("id") == category_id:
             return [(int(a) - 1, int(b) - 1) for a, b in cat["skeleton"]]
     return None
 
@@ -265,17 +345,21 @@ def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=No
     position (M,) of each kept annotation in ``obj["annotations"]``: the one COCO reader
     (``coco_to_data`` for training sets, ``predict`` for inference).
 
-    Annotations without ``keypoints`` (other kinds) and, with ``category_id``, of other
-    categories are passed over. A point is visible when its flag v >= ``min_v`` (1:
-    labelled, maybe occluded; 2: labelled and visible); annotations with fewer than
-    ``min_visible`` visible points are skipped with one warning line. Malformed keypoint
-    lists are a ``ValueError`` naming the annotation.
+    Annotations without ``keypoints`` (other kinds, or an empty list) and, with
+    ``category_id``, of other categories are passed over. A point is visible when its flag
+    v >= ``min_v`` (1: labelled, maybe occluded; 2: labelled and visible); annotations with
+    fewer than ``min_visible`` visible points are skipped with one warning line. Malformed
+    keypoint lists are a ``ValueError`` naming the annotation.
     """
     images = {im["id"]: im.get("file_name", "") for im in obj.get("images", [])}
-    picked = [(i, a) for i, a in enumerate(obj.get("annotations", [])) if "keypoints" in a
-              and (category_id is None or a.get("category_id") == category_id)]
+    with_kp = [(i, a) for i, a in enumerate(obj.get("annotations", [])) if a.get("keypoints")]
+    picked = [(i, a) for i, a in with_kp
+              if category_id is None or a.get("category_id") == category_id]
     if not picked:
-        raise ValueError("no annotations with 'keypoints' found")
+        ids = sorted({str(a.get("category_id")) for _, a in with_kp})
+        raise ValueError("no annotations with 'keypoints' found" + (
+            f" of category_id {category_id} (the keypoint annotations' categories: "
+            f"{', '.join(ids)})" if with_kp else ""))
     rows = []
     for i, ann in picked:
         flat = np.asarray(ann["keypoints"], np.float32).reshape(-1)
@@ -288,9 +372,12 @@ def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=No
     odd = [(i, size) for (i, _), size in zip(picked, sizes, strict=True) if size != common]
     if odd:
         i, size = odd[0]
+        cats = {a.get("category_id") for _, a in picked}
+        hint = (f"; they hold {len(cats)} categories: keep one with category_id (--category_id)"
+                if category_id is None and len(cats) > 1 else "")
         raise ValueError(f"annotation {i} has {size // 3} keypoints, most others "
                          f"{common // 3} ({len(odd)} of {len(rows)} annotations differ); "
-                         "expected one length 3K for all annotations")
+                         f"expected one length 3K for all annotations{hint}")
     kpv = np.stack(rows).reshape(len(rows), -1, 3)
     vis = (kpv[..., 2] >= min_v).astype(np.float32)
     keep = vis.sum(1) >= min_visible
@@ -370,10 +457,26 @@ def main(argv=None) -> None:
                        help="seed of the split, cameras, occlusion and noise (default: "
                             "%(default)s)")
         p.add_argument("--hold_out", choices=("blocks", "clips"), default="blocks",
-                       help="with a 'clip' array in the .npz: test blocks inside every clip, "
-                            "or whole clips")
+                       help="test blocks inside every clip, or whole clips (clips: needs a "
+                            "per-frame clip array beside the sequence; default: %(default)s)")
+        p.add_argument("--up", choices=("x", "y", "z"), default="y",
+                       help="the sequence's up axis; upright cameras keep it vertical (z-up "
+                            "data is turned to y-up first; default: %(default)s)")
         p.add_argument("--skeleton", default=None, help=_SKELETON_HELP + (
             " (default: the BVH file's bones)" if kind == "bvh" else " (default: none)"))
+        if kind == "sequence":
+            p.add_argument("--key", default="X",
+                           help="the array that holds the points (default: %(default)s, or the "
+                                "file's only array)")
+            p.add_argument("--clip_key", default="clip",
+                           help="the array of per-frame clip ids, if any (default: %(default)s)")
+            p.add_argument("--layout", choices=LAYOUTS, default=None,
+                           help="the array's axis order, F frames, 3 coordinates, K points "
+                                "(default: guessed, (F, 3, K) or (F, K, 3); a 2D array is "
+                                "(3F, K))")
+        else:
+            p.add_argument("--end_sites", action="store_true",
+                           help="keep the End Sites (head top, toe tips, ...) as points too")
     p = sub.add_parser("coco", help="2D-only data from COCO-style keypoint annotations")
     p.add_argument("path", help="COCO-style keypoint annotations (.json)")
     p.add_argument("--out", required=True, help="the JSON file to write")
@@ -387,7 +490,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.kind == "coco":
         with open(args.path) as f:
-            obj = json.load(f)
+            try:
+                obj = json.load(f)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"{args.path} is not a JSON file: {err}") from None
         data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
         save(data, args.out, y_up=False, unit="px",
              skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
@@ -398,11 +504,13 @@ def main(argv=None) -> None:
     if args.kind == "bvh":
         with open(args.path) as f:
             text = f.read()
-        x, _ = bvh_positions(text)
-        bones = bvh_bones(text)
+        x, _ = bvh_positions(text, args.end_sites)
+        bones = bvh_bones(text, args.end_sites)
+        clip = None
     else:
-        x = load_sequence(args.path)
-    clip = load_clips(args.path) if args.kind == "sequence" else None
+        x = load_sequence(args.path, args.key, args.layout)
+        clip = load_clips(args.path, args.clip_key)
+    x = to_y_up(x, args.up)
     train, test = views_from_sequence(
         x, views_per_frame=args.views_per_frame, cameras=args.cameras,
         max_elevation=args.max_elevation, test_fraction=args.test_fraction,
