@@ -497,7 +497,9 @@ def main(argv=None) -> None:
         data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
         save(data, args.out, y_up=False, unit="px",
              skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
-        print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints})")
+        print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints}): "
+              f"--config.model.n_keypoints={data.n_keypoints} --config.data.protocol=none "
+              "(2D only)")
         return
     name = args.name or os.path.splitext(os.path.basename(args.path))[0]
     bones = None
