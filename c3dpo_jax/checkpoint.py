@@ -3,8 +3,9 @@
 Layout of a workdir::
 
     workdir/config.json          the resolved config (model settings for ``load``), the
-                                 training split's fingerprint and the software that
-                                 trained it (``software_record``)
+                                 training split's fingerprint, the data files' absolute
+                                 paths (``data_files``) and the software that trained it
+                                 (``software_record``)
     workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree (or of the
                                  variables alone: ``save_variables``), and
                                  c3dpo_sha256.json: the sha256 of each of its files
