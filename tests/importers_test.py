@@ -66,6 +66,9 @@ def test_an_array_layout_is_named_or_refused_when_its_shape_is_ambiguous(tmp_pat
         importers.load_sequence(str(tmp_path / "k3.npz"))
     np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "k3.npz"), layout="FK3"),
                                x[:, :3])
+    scipy.io.savemat(tmp_path / "w.mat", {"W": np.swapaxes(x, 1, 2).reshape(-1, 9)})
+    with pytest.raises(ValueError, match=r"is 2D \(180, 9\): --layout names the axes of a 3D"):
+        importers.load_sequence(str(tmp_path / "w.mat"), layout="F3K")
     # Several arrays: the points and the clips are chosen by name, from the command line too.
     np.savez(tmp_path / "p.npz", pose=x, shot=np.repeat([0, 1, 2], 20), fps=30.0)
     with pytest.raises(ValueError, match=r"no array 'X'; it holds \['fps', 'pose', 'shot'\] "

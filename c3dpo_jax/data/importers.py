@@ -89,6 +89,9 @@ def load_sequence(path: str, key: str = "X", layout: str | None = None) -> np.nd
     elif x.ndim == 3:
         layout = layout or _guess_layout(x.shape, path, key)
         x = np.transpose(x, [layout.index(c) for c in "FK3"])
+    elif x.ndim == 2 and layout is not None:
+        raise ValueError(f"{path}: array {key!r} is 2D {x.shape}: --layout names the axes of a "
+                         "3D array (a 2D one is read as the stacking (3F, K))")
     else:
         raise ValueError(f"{path}: array {key!r} has shape {x.shape}; expected (F, 3, K), "
                          "(F, K, 3) (another order: --layout) or (3F, K)")
