@@ -167,8 +167,13 @@ def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str
 def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
         chunk_steps: int = 1) -> dict:
     """Runs every measurement for ``config``; returns a flat dict (see the module docstring)."""
-    if chunk_steps < 1:
-        raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
+    for name, value in (("chunk_steps", chunk_steps), ("steps", steps), ("repeats", repeats),
+                        ("eval_batch", eval_batch)):
+        if value < 1:
+            raise ValueError(f"--{name}={value} (must be >= 1)")
+    if config.model.keypoint_rescale == 0:  # "from the data": the random inputs' unit scale
+        config = config.copy_and_resolve_references()
+        config.model.keypoint_rescale = 1.0
     spec = train.RunSpec.from_config(config)
     model_cfg, tx = spec.model, spec.optimizer()
     batch = config.train.batch_size
@@ -213,6 +218,7 @@ def format_table(res: dict) -> str:
 
 def main(argv, fl):
     del argv
+    cli.setup_logging()
     res = run(fl["config"].value, fl["steps"].value, fl["eval_batch"].value, fl["repeats"].value,
               fl["chunk_steps"].value)
     print(format_table(res))

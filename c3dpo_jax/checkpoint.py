@@ -290,16 +290,25 @@ def save_config(workdir: str, config: dict[str, Any]) -> None:
     write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
 
 
-# What makes a checkpoint another run's: the network (model), the optimiser and its
-# state (optim), and what the run learns from. The evaluation protocol, the test file
-# and the step counts may change between a run and its resumption.
+# What makes a checkpoint another run's: the network (model, but for its inference-only
+# test_time_* options), the optimiser and its state (optim), the objective (loss), the
+# seed, the batches and the epoch length that the schedule counts in, and what the run
+# learns from. The evaluation protocol, the test file, the inference options and the step
+# counts may change between a run and its resumption.
 _RUN_DATA_FIELDS = ("train_path", "source", "min_visible", "drop_invalid", "class_balanced")
+_RUN_TRAIN_FIELDS = ("batch_size", "samples_per_epoch")
 
 
 def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
-    data = config.get("data", {})
-    ident = {"model": config.get("model", {}), "optim": config.get("optim", {}),
+    data, train = config.get("data", {}), config.get("train", {})
+    ident = {"model": {k: v for k, v in config.get("model", {}).items()
+                       if not k.startswith("test_time_")},
+             "optim": config.get("optim", {}),
+             "train": {k: train[k] for k in _RUN_TRAIN_FIELDS if k in train},
              "data": {k: data[k] for k in _RUN_DATA_FIELDS if k in data}}
+    for key in ("loss", "seed"):
+        if key in config:
+            ident[key] = config[key]
     if "train_data_sha256" in config:  # what was read, so a file edited in place counts
         ident["train_data_sha256"] = config["train_data_sha256"][:12]
     if data.get("train_path"):  # the files win over the source (data.load_splits)
@@ -327,7 +336,7 @@ def has_checkpoint(workdir: str) -> bool:
 
 def check_workdir(workdir: str, config: dict[str, Any]) -> None:
     """Refuses, in one line and before anything is written, to resume checkpoints made
-    with another model, optimiser or training data than ``config`` asks for. A workdir
+    with another run identity (``_run_identity``) than ``config`` asks for. A workdir
     without checkpoints (e.g. left by a run that failed before its first one) may be
     reused by any run; fields that only one of the two configs has are not compared."""
     saved = load_config(workdir)

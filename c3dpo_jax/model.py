@@ -266,6 +266,11 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
     """``(kp_cal, kp_norm, centre)``: calibrated keypoints (perspective) and the
     network's centred, rescaled input with the centre that was removed. Hidden points
     are zeroed first: whatever they hold (1e20, NaN) never reaches the arithmetic."""
+    if cfg.keypoint_rescale == 0:  # the config's "from the data", never resolved
+        raise ValueError("model.keypoint_rescale=0 means 'set it from the training data' and "
+                         "was not resolved: the network would see zeros. Resolve it first "
+                         "(train.resolve_input_scale(config, train_data), as "
+                         "train_and_evaluate does; a loaded model has it)")
     kp = jnp.where(vis[:, None] > 0, kp, 0.0)
     if cfg.projection_type == "perspective":
         if intrinsics is None:

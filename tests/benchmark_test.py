@@ -54,8 +54,12 @@ def test_chunk_steps_below_one_is_a_clear_error():
     from configs import default
 
     c = default.get_config("smoke")  # the configs' own tiny variant
-    with pytest.raises(ValueError, match="chunk_steps must be >= 1"):
+    with pytest.raises(ValueError, match=r"--chunk_steps=0 \(must be >= 1\)"):
         benchmark.run(c, steps=1, eval_batch=16, repeats=1, chunk_steps=0)
+    for name in ("steps", "repeats", "eval_batch"):
+        kwargs = {**dict(steps=1, eval_batch=16, repeats=1, chunk_steps=1), name: 0}
+        with pytest.raises(ValueError, match=rf"--{name}=0 \(must be >= 1\)"):
+            benchmark.run(c, **kwargs)
 
 
 def test_flops_count_matches_a_hand_count():

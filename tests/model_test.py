@@ -103,6 +103,15 @@ def test_perspective_model_requires_intrinsics():
         model.forward_eval(variables, jnp.zeros((8, 2)), jnp.ones(8), jnp.ones(8), None, cfg)
 
 
+def test_an_unresolved_input_scale_is_refused_not_trained_on_zeros():
+    # keypoint_rescale=0 is the configs' "from the training data"; train_and_evaluate
+    # resolves it, a hand-made step must too.
+    cfg = dataclasses.replace(CFG, keypoint_rescale=0.0)
+    variables = model.init_variables(jax.random.key(0), cfg)
+    with pytest.raises(ValueError, match=r"keypoint_rescale=0 .*\(train\.resolve_input_scale"):
+        model.forward_eval(variables, jnp.ones((8, 2)), jnp.ones(8), jnp.ones(8), None, cfg)
+
+
 def test_unknown_model_options_are_rejected():
     with pytest.raises(ValueError, match="n_keypoint"):
         model.ModelConfig.from_dict({"n_keypoint": 3})

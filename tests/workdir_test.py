@@ -44,6 +44,13 @@ def _workdir(tmp_path, with_checkpoint: bool):
             "data.train_path: '' in the checkpoint's run, 'a.json' now",
         ),
         ({"data.class_balanced": True}, "data.class_balanced: False in the checkpoint's run"),
+        # The objective, the seed and the batches: a resumed run under other ones would
+        # continue the old run while config.json described the new settings.
+        ({"loss.w_canonicalization": 3.0},
+         "loss.w_canonicalization: 1.0 in the checkpoint's run, 3.0 now"),
+        ({"seed": 1}, "seed: 0 in the checkpoint's run, 1 now"),
+        ({"train.batch_size": 64}, "train.batch_size: 32 in the checkpoint's run, 64 now"),
+        ({"train.samples_per_epoch": 64}, "train.samples_per_epoch: 320 in the checkpoint's run"),
     ],
 )
 def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, named):
@@ -64,8 +71,8 @@ def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, n
         {"train.ckpt_every": 5},
         {"data.protocol": "none"},
         {"data.test_path": "b.json"},
-        {"loss.w_canonicalization": 3.0},
-        {"seed": 1},
+        {"model.test_time_refine_iters": 5},  # inference only
+        {"train.epochs": 20},
     ],
 )
 def test_what_a_resumed_run_may_change(tmp_path, change):
