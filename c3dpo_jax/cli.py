@@ -123,7 +123,9 @@ def get_config(spec: str):
     directory: ``SPEC`` is ``configs/NAME.py[:ARGS]`` (the bundled copy unless the path
     exists relative to the working directory) or a config file of one's own.
 
-    Example: ``get_config("configs/synthetic.py:smoke")``.
+    Example: ``get_config("configs/synthetic.py:smoke")``. The config is locked, as the
+    command line's: a field that does not exist (a typo) is an error, not a new field that
+    nothing reads.
     """
     path, _, arg = resolve_config(spec).partition(":")
     use_configs_package(path)
@@ -131,7 +133,9 @@ def get_config(spec: str):
     module_spec = importlib.util.spec_from_file_location(f"_c3dpo_config_{name}", path)
     module = importlib.util.module_from_spec(module_spec)
     module_spec.loader.exec_module(module)
-    return module.get_config(arg or None)
+    config = module.get_config(arg or None)
+    config.lock()
+    return config
 
 
 def _resolve_config_argv(argv: list[str]) -> list[str]:

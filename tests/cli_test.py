@@ -116,6 +116,10 @@ def test_get_config_gives_a_bundled_config_with_its_variant_from_any_directory(
     assert full.model.n_fully_connected == 256
     with pytest.raises(FileNotFoundError, match="configs/synthetic.py"):
         cli.get_config("configs/no_such_config.py")
+    # Locked as on the command line: a typo is an error, not a field nothing reads.
+    smoke.train.num_steps = 5
+    with pytest.raises(AttributeError, match="num_stepz"):
+        smoke.train.num_stepz = 5
 
 
 def test_error_messages_are_one_line():
