@@ -48,6 +48,13 @@ def _sinc_sq(theta_sq: Float[Array, ""]) -> Float[Array, ""]:
     return jnp.where(small, series, jnp.sin(t) / t)
 
 
+def _check_shape(x, shape: tuple[int, ...], name: str, what: str) -> None:
+    """One ``what`` of ``shape``, else an error (batches go through ``jax.vmap``)."""
+    if jnp.shape(x) != shape:
+        raise ValueError(f"{name} takes one {what} of shape {shape}, got {jnp.shape(x)} "
+                         f"(for a batch: jax.vmap({name}))")
+
+
 def exp_map(w: Vec3) -> Rot:
     """Rodrigues' formula ``R = I + A hat(w) + B hat(w)^2`` for ``expm(hat(w))``.
 
@@ -57,6 +64,7 @@ def exp_map(w: Vec3) -> Rot:
     exact values and finite gradients at ``w = 0``. The release instead divides by
     ``t + 1e-4``, which is not orthonormal for small angles.
     """
+    _check_shape(w, (3,), "exp_map", "rotation vector")
     theta_sq = jnp.sum(w * w)
     a = _sinc_sq(theta_sq)
     b = 0.5 * _sinc_sq(theta_sq / 4.0) ** 2
@@ -71,8 +79,12 @@ def log_map(r: Rot) -> Vec3:
     everywhere, and near ``pi`` (where ``R - R^T`` vanishes) reads the axis from the
     largest column of ``(R + R^T)/2 + (1 - cos t) ... = I cos t + (1-cos t) a a^T``.
     """
+    _check_shape(r, (3, 3), "log_map", "rotation matrix")
     s = vee(r)
-    sin_t = jnp.linalg.norm(s)
+    # |s| with a finite gradient at the identity (that of a norm at 0 is NaN).
+    sin_sq = jnp.sum(s * s)
+    positive = sin_sq > 0
+    sin_t = jnp.where(positive, jnp.sqrt(jnp.where(positive, sin_sq, 1.0)), 0.0)
     cos_t = 0.5 * (jnp.trace(r) - 1.0)
     theta = jnp.arctan2(sin_t, cos_t)
     # Generic branch: w = theta / sin(theta) * s, with the series near 0.

@@ -80,6 +80,37 @@ def test_log_map_inverts_exp_map_and_matches_scipy(angle):
         np.testing.assert_allclose(back, w, atol=1e-8)
 
 
+def test_a_geodesic_rotation_loss_has_finite_gradients_at_and_near_its_solution():
+    # |log(R(w)^T R(w0))|^2: zero gradient at w = w0 (the identity inside log_map), and
+    # central finite differences (float64, an independent computation) next to it.
+    w0 = jnp.array([0.1, 0.2, 0.3])
+
+    def loss(w):
+        return jnp.sum(so3.log_map(so3.exp_map(w).T @ so3.exp_map(w0)) ** 2)
+
+    np.testing.assert_allclose(jax.grad(loss)(w0), 0.0, atol=1e-6)
+    assert np.isfinite(np.asarray(jax.jacrev(so3.log_map)(jnp.eye(3)))).all()
+    w = np.array([0.12, 0.19, 0.315])
+
+    def angle_sq(v):  # the same loss by scipy, in float64
+        rel = Rotation.from_rotvec(v).inv() * Rotation.from_rotvec(np.asarray(w0, np.float64))
+        return rel.magnitude() ** 2
+
+    eps = 1e-6
+    numeric = [(angle_sq(w + eps * e) - angle_sq(w - eps * e)) / (2 * eps) for e in np.eye(3)]
+    np.testing.assert_allclose(jax.grad(loss)(jnp.asarray(w, jnp.float32)), numeric, rtol=1e-3,
+                               atol=1e-5)
+
+
+def test_one_rotation_at_a_time_or_a_clear_error():
+    # The check itself (the test run's type checker answers first for a wrong shape).
+    with pytest.raises(ValueError, match=r"exp_map takes one rotation vector of shape \(3,\), "
+                       r"got \(5, 3\) \(for a batch: jax.vmap\(exp_map\)\)"):
+        so3._check_shape(jnp.ones((5, 3)), (3,), "exp_map", "rotation vector")
+    so3._check_shape(jnp.ones(3), (3,), "exp_map", "rotation vector")
+    assert jax.vmap(so3.exp_map)(jnp.ones((5, 3))).shape == (5, 3, 3)
+
+
 def test_haar_rotations_have_the_uniform_angle_distribution(key):
     rots = jax.vmap(so3.random_rotation)(jax.random.split(key, 20000))
     rots = np.asarray(rots, np.float64)
