@@ -377,6 +377,9 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
     before = run_records.read_results(workdir)
     history = [h for h in before.get("history", []) if h["step"] <= step]
+    last = before.get("final")
+    if last and last.get("step") == step < total and all(h["step"] != step for h in history):
+        history.append(last)  # a finished run extended: its final evaluation is on the curve
     train_s = run_records.clock_at(before, step) or 0.0
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
@@ -424,7 +427,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                     logging.info("stopped early at step %d of %d", step, total)
                     break
         writer.flush()
-    except Exception:  # e.g. a diverged loss (FloatingPointError)
+    except BaseException:  # a diverged loss (FloatingPointError), a hook's exception, Ctrl-C
         close()
         raise
     train_s += time.perf_counter() - tic

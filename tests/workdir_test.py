@@ -205,3 +205,13 @@ def test_the_pictures_find_the_data_files_from_any_directory(tmp_path, monkeypat
     os.rename(tmp_path / "data", tmp_path / "moved")
     assert visualise.run_style(config) == {"skeleton": None, "y_up": False, "unit": ""}
     assert "data file " + str(tmp_path / "data" / "test.json") + " is not found" in caplog.text
+
+
+def test_a_finished_run_extended_keeps_its_final_evaluation_on_the_curve(tmp_path):
+    workdir = str(tmp_path / "run")
+    first = train.train_and_evaluate(_config(**{"train.eval_every_steps": 4}), workdir)
+    assert [h["step"] for h in first["history"]] == [4, 8] and first["final"]["step"] == 10
+    longer = _config(**{"train.eval_every_steps": 4, "train.num_steps": 16})
+    results = train.train_and_evaluate(longer, workdir)
+    assert [h["step"] for h in results["history"]] == [4, 8, 10, 12]
+    assert results["history"][2] == first["final"] and results["final"]["step"] == 16
