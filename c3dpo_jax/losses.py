@@ -20,8 +20,8 @@ from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, model, so3
 
-__all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "draw_rotations",
-           "huber", "make_loss_fn", "reprojection", "supervised"]
+__all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "deformation",
+           "draw_rotations", "huber", "make_loss_fn", "reprojection", "supervised"]
 
 
 def huber(dist_sq: Float[Array, "*S"], scaling: float) -> Float[Array, "*S"]:
@@ -206,7 +206,13 @@ def draw_rotations(key: jax.Array, cfg: model.ModelConfig) -> model.TrainRotatio
 
 def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
     """``loss_fn(params, batch_stats, batch, key, step=0) -> (objective, (batch_stats,
-    metrics))``; ``step`` only matters for a ramped canonicalisation weight."""
+    metrics))``; ``step`` only matters for the ramped weights.
+
+    ``batch`` holds ``kp`` (B, N, 2), ``vis`` (B, N) and ``class_mask`` (B, N) (ones for
+    single-class data), as ``KeypointData.model_inputs()`` gives them; ``intrinsics``
+    (B, 3, 3) for perspective models, and ``kp3d`` (B, N, 3) when ``loss_cfg.w_supervised``
+    is set. ``model_cfg.keypoint_rescale`` must be resolved (``train.resolve_input_scale``).
+    """
 
     def loss_fn(params, batch_stats, batch, key, step=0):
         variables = {"params": params, "batch_stats": batch_stats}
