@@ -72,27 +72,24 @@ def read_input(path: str) -> dict[str, np.ndarray]:
             obj = json.load(f)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:  # say which file
         raise ValueError(f"{path} is not a JSON file: {err}") from err
-    if isinstance(obj, dict) and "annotations" in obj:
-        from c3dpo_jax.data.importers import coco_skeleton
+    from c3dpo_jax.data import importers, json_dataset
 
+    if isinstance(obj, dict) and "annotations" in obj:
         out = read_coco(obj)
-        style = {"y_up": False, "unit": "px", "skeleton": coco_skeleton(obj)}
+        style = {"y_up": False, "unit": "px", "skeleton": importers.coco_skeleton(obj)}
         out["style"] = {k: v for k, v in style.items() if v is not None}
         return out
-    from c3dpo_jax.data import json_dataset
-
     # One visible point is enough to lift (reconstruct accepts it); training needs two.
     # Entries with none are skipped, as COCO annotations are; other faults are errors.
     data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"),
                               min_visible=0)
-    index = np.flatnonzero(data.vis.sum(1) > 0)
-    if len(index) < len(data):
-        skipped = np.setdiff1d(np.arange(len(data)), index)
-        if not len(index):
+    seen = data.vis.sum(1) > 0
+    index = np.flatnonzero(seen)
+    if not seen.all():
+        if not seen.any():
             raise ValueError(f"{path}: no entry has a visible point")
-        logging.warning("%s: %d of %d entries have no visible point: skipped (entries %s%s)",
-                        path, skipped.size, len(data), skipped[:10].tolist(),
-                        " ..." if skipped.size > 10 else "")
+        importers.warn_skipped(path, np.flatnonzero(~seen), len(data), "entries",
+                               "no visible point")
         data = data.subset(index)
     out = {"kp": data.kp, "vis": data.vis, "index": index}
     optional = (("class_mask", data.class_mask), ("K", data.intrinsics), ("kp3d", data.kp3d))

@@ -140,9 +140,10 @@ def _samples(idx: np.ndarray) -> str:
     return f"sample(s) {idx[:10].tolist()}" + (" ..." if idx.size > 10 else "")
 
 
-def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> None:
+def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> np.ndarray:
     """Visible points must be finite, and their spread in the model's normalised units
-    below ``MAX_NORMALISED_EXTENT`` (float32 cannot reconstruct 1e20-sized inputs)."""
+    below ``MAX_NORMALISED_EXTENT`` (float32 cannot reconstruct 1e20-sized inputs).
+    Returns their mean (B, 1, 2) in float64 (of the calibrated points when ``K`` is given)."""
     shown = vis[..., None] > 0
     bad = np.flatnonzero((shown & ~np.isfinite(kp)).any((1, 2)))
     if bad.size:
@@ -164,6 +165,7 @@ def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> None:
             f"{cfg.keypoint_rescale:g}; its training data lies within a few units, the limit "
             f"is {MAX_NORMALISED_EXTENT:g}): are the coordinates corrupt or in other units?")
     _warn_if_other_units(cfg, pts, shown, mean)
+    return mean
 
 
 # A warning when the inputs' scale is further than this factor from the training data's.
@@ -257,13 +259,10 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
                              "transposed K?)")
     elif K is not None:
         raise ValueError("K was given but the model is orthographic (it takes no intrinsics)")
-    _check_values(cfg, kp, vis, K)
-    shown = vis[..., None] > 0
-    kp = np.where(shown, kp, 0.0)
-    offset = np.zeros((len(kp), 1, 2))
-    if cfg.projection_type != "perspective":  # the model is translation-equivariant
-        offset = kp.sum(1, keepdims=True) / shown.sum(1, keepdims=True)
-    kp = np.where(shown, kp - offset, 0.0).astype(np.float32)
+    mean = _check_values(cfg, kp, vis, K)  # (B, 1, 2) of the visible points, float64
+    # The model is translation-equivariant for orthographic views, not for perspective ones.
+    offset = np.zeros_like(mean) if cfg.projection_type == "perspective" else mean
+    kp = np.where(vis[..., None] > 0, kp - offset, 0.0).astype(np.float32)
     return single, kp, offset, vis, K, class_mask
 
 
@@ -276,7 +275,8 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
 
 def _count(name: str, value, least: int) -> int:
     """``value`` as a Python int (numpy integers too) of at least ``least``, else a one-line
-    error naming ``name``."""
+    error naming ``name``. (``validation.Range`` checks the config's fields; inference does
+    not import that module, which imports the training code.)"""
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer) \
             or value < least:
         raise ValueError(f"{name}={value!r} (must be an integer >= {least}, or None)")

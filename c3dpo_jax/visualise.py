@@ -160,7 +160,7 @@ def plot_reconstruction_3d(shape, gt=None, edges=(), views=VIEWS, kp=None, vis=N
     """
     plt = _plt()
     shape, gt, err = align_ground_truth(shape, gt)
-    edges = skeletons.skeleton(edges, len(shape)) if len(edges) else edges  # indices checked
+    edges = skeletons.skeleton(edges, len(shape))  # names allowed, indices checked
     vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
     panels = len(views) + (kp is not None)
     fig = plt.figure(figsize=(3.8 * panels, 4.2))
@@ -206,7 +206,7 @@ def save_rotation_gif(shape, path: str, edges=(), gt=None, vis=None, y_up: bool 
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     shape, gt, err = align_ground_truth(shape, gt)
-    edges = skeletons.skeleton(edges, len(shape)) if len(edges) else edges  # indices checked
+    edges = skeletons.skeleton(edges, len(shape))  # names allowed, indices checked
     vis = np.ones(len(shape), bool) if vis is None else np.asarray(vis) > 0
     points = shape if gt is None else np.concatenate([shape, gt])
     fig = plt.figure(figsize=(4, 4.4))

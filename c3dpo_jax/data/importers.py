@@ -41,18 +41,19 @@ from c3dpo_jax.data.rotations import axis_rotation, random_rotations, upright_ro
 LAYOUTS = ("F3K", "FK3", "K3F", "KF3", "3FK", "3KF")
 
 
-def _arrays(path: str) -> dict[str, np.ndarray]:
-    """The named arrays of a ``.npz`` or ``.mat`` file."""
+def _arrays(path: str, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """The named arrays of a ``.npz`` or ``.mat`` file: all, or only those of ``names``
+    that it holds (the others are not read)."""
     if not path.endswith((".npz", ".mat")):
         raise ValueError(f"{path}: a sequence is read from a .npz or .mat file (an array X of "
                          "shape (F, 3, K), (F, K, 3) or (3F, K))")
     if path.endswith(".npz"):
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            return {k: z[k] for k in z.files if names is None or k in names}
     import scipy.io
 
     try:
-        contents = scipy.io.loadmat(path)
+        contents = scipy.io.loadmat(path, variable_names=names)
     except NotImplementedError as err:  # MATLAB v7.3 files are HDF5
         raise ValueError(f"{path}: {err} (or save it from MATLAB with -v7)") from None
     return {k: v for k, v in contents.items() if not k.startswith("__")}
@@ -154,7 +155,7 @@ def clip_split(clip: np.ndarray, test_fraction: float, n_blocks: int, seed: int,
 def load_clips(path: str, key: str = "clip") -> np.ndarray | None:
     """The per-frame clip ids (F,) of a ``.npz`` or ``.mat`` sequence, or None when it has
     none."""
-    clip = _arrays(path).get(key)
+    clip = _arrays(path, (key,)).get(key)
     if clip is not None and np.ndim(clip) == 2 and 1 in np.shape(clip):
         clip = np.reshape(clip, -1)  # MATLAB stores a vector as (1, F) or (F, 1)
     return clip
@@ -342,6 +343,12 @@ def save(data: KeypointData, path: str, *, y_up: bool, skeleton=None, unit: str 
         json.dump({"dataset": data.name, **style, "data": json_dataset.to_json_entries(data)}, f)
 
 
+def warn_skipped(label: str, skipped: np.ndarray, total: int, items: str, why: str) -> None:
+    """One warning line: ``LABEL: S of T ITEMS have WHY: skipped (ITEMS [first ten] ...)``."""
+    logging.warning("%s: %d of %d %s have %s: skipped (%s %s%s)", label, skipped.size, total,
+                    items, why, items, skipped[:10].tolist(), " ..." if skipped.size > 10 else "")
+
+
 def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=None,
               name: str = "coco") -> tuple[KeypointData, np.ndarray]:
     """COCO-style keypoint annotations -> 2D-only ``KeypointData`` (no ``kp3d``) and the
@@ -390,10 +397,7 @@ def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=No
     if not keep.any():
         raise ValueError(f"every COCO annotation with keypoints has {what}")
     if not keep.all():
-        skipped = index[~keep]
-        logging.warning("coco: %d of %d annotations have %s: skipped (annotations %s%s)",
-                        skipped.size, len(picked), what, skipped[:10].tolist(),
-                        " ..." if skipped.size > 10 else "")
+        warn_skipped("coco", index[~keep], len(picked), "annotations", what)
     paths = np.array([images.get(a.get("image_id"), "") for _, a in picked])[keep]
     data = KeypointData(kp=(kpv[..., :2] * vis[..., None])[keep], vis=vis[keep],
                         image_path=paths, name=name)
