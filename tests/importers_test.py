@@ -88,6 +88,9 @@ def test_sequences_that_cannot_make_a_split_are_refused_at_import(tmp_path):
             (np.ones((20, 6, 3)), {}, "6 point\\(s\\) coincide in every frame"),
             (x[:, :1], {}, "1 point\\(s\\) coincide"),
             (x, {"views_per_frame": 0}, "views_per_frame=0"),
+            (x, {"test_fraction": 0}, "test_fraction=0 \\(must be between 0 and 1"),
+            (x, {"test_fraction": 1.0}, "test_fraction=1.0 "),
+            (x, {"n_blocks": 1}, "n_blocks=1 \\(must be >= 2"),
             (x, {"hold_out": "clips"}, "hold_out='clips' needs per-frame clip ids")]:
         with pytest.raises(ValueError, match=match):
             importers.views_from_sequence(seq, **kwargs)

@@ -212,6 +212,12 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
             f"the sequence has NaN or inf at {len(bad)} points of {len(frames)} frames (first: "
             f"frame {bad[0, 0]}, point {bad[0, 1]}); a frame needs every point (fill the gaps "
             "or drop those frames)")
+    if not 0 < test_fraction < 1:
+        raise ValueError(f"test_fraction={test_fraction} (must be between 0 and 1: training "
+                         "needs a test split, and at least one block of each is kept)")
+    if n_blocks < 2:
+        raise ValueError(f"n_blocks={n_blocks} (must be >= 2: one block of test frames and one "
+                         "of training frames)")
     x, scale = _normalise(x) if normalise else (x - x.mean(1, keepdims=True), 1.0)
     if clip is None:
         if hold_out != "blocks":
