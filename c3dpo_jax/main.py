@@ -87,6 +87,9 @@ def main(argv):
     print(f"\nTest split ({results['final']['n_samples']} samples, protocol "
           f"'{config.data.protocol}'), step {results['final']['step']}:")
     print(evaluation.format_table(rows))
+    if "inference" in results["final"]:
+        print("C3DPO scored with inference options other than the training's: " + ", ".join(
+            f"model.{k}={v}" for k, v in results["final"]["inference"].items()))
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape has the other "
               "handedness (0: one for all; about 0.5: a coin toss per view, docs/data.md)")

@@ -468,12 +468,24 @@ def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, templa
                      "evaluate it with the config it was trained with")
 
 
+def _inference_options(config, saved: dict | None) -> dict:
+    """The config's ``model.test_time_*`` options when any differs from the run's saved
+    config (a run saved without one had the option's default), else ``{}``."""
+    now = {k: v for k, v in json.loads(json.dumps(config.model.to_dict())).items()
+           if k.startswith("test_time_")}
+    before = (saved or {}).get("model", {})
+    differ = any(k in before and before[k] != v for k, v in now.items())
+    return now if differ else {}
+
+
 def evaluate_checkpoint(config, workdir: str) -> dict:
     """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
 
     Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
-    checkpoint's step (``run_records.clock_at``).
+    checkpoint's step (``run_records.clock_at``). Where the config's inference options
+    (``model.test_time_*``) differ from the run's, ``final["inference"]`` records the ones
+    used, since the history's records were made with the run's.
     """
     train_data, test_data = load_splits(config.data)
     saved = checkpoint.load_config(workdir)
@@ -490,6 +502,9 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     clock = run_records.clock_at(before, step)
     final = dict(step=step, epoch=step // spec.steps_per_epoch,
                  **({} if clock is None else {"train_s": clock}), **final)
+    inference = _inference_options(config, saved)
+    if inference:
+        final["inference"] = inference
     results = dict(before, final=final,
                    baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
     run_records.write_results(workdir, results)

@@ -53,6 +53,7 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     reevaluated = json.loads(_read(workdir, "eval_results.json"))
     assert reevaluated["final"]["mpjpe"] == pytest.approx(results["final"]["mpjpe"], rel=1e-5)
+    assert "inference" not in reevaluated["final"]  # the training's own inference options
     # The run's clock survives the resume and the re-scoring (tables read the minutes from
     # final): no training happened after the first run, so at most the loop's overhead.
     assert reevaluated["final"]["epoch"] == results["final"]["epoch"]

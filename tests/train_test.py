@@ -197,6 +197,14 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path):
     b, _ = checkpoint.restore_latest(str(tmp_path / "split"), template)
     chex.assert_trees_all_close(a, b, atol=1e-6)
     assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
+    # Scoring again with other inference options says which were used: the history's
+    # records were made with the run's own.
+    cfg.model.test_time_refine_iters = 3
+    again = train.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
+    assert again["final"]["inference"]["test_time_refine_iters"] == 3
+    assert "inference" not in whole["final"]
+    same = train.evaluate_checkpoint(_tiny_config(20), str(tmp_path / "whole"))
+    assert "inference" not in same["final"]
 
 
 def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path):
