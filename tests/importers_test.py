@@ -57,7 +57,7 @@ def test_an_array_layout_is_named_or_refused_when_its_shape_is_ambiguous(tmp_pat
     scipy.io.savemat(tmp_path / "k3f.mat", {"X": np.transpose(x, (1, 2, 0))})
     with caplog.at_level("INFO"):
         importers.load_sequence(str(tmp_path / "k3f.mat"))
-    assert "read as F3K: F=9 frames of K=60 points (fewer frames than points" in caplog.text
+    assert "read as F3K: F=9 frames of K=60 points, fewer frames than points" in caplog.text
     np.testing.assert_allclose(importers.load_sequence(str(tmp_path / "k3f.mat"), layout="K3F"),
                                x)
     # Three points: (F, 3, 3) could be either of two layouts, so it is refused.
@@ -258,9 +258,11 @@ def test_the_import_command_reports_input_errors_in_one_line(tmp_path, monkeypat
         monkeypatch.setattr("sys.argv", ["c3dpo-import", *args])
         with pytest.raises(SystemExit) as stop:
             importers.cli_main()
-        err = capsys.readouterr().err
-        assert stop.value.code == 2 and err.startswith(f"error: {message}"), err
-        assert err.count("\n") == 1
+        *logged, last = capsys.readouterr().err.splitlines()
+        assert stop.value.code == 2 and last.startswith(f"error: {message}"), last
+        assert all(line[:1] in "IW" and "importers.py" in line for line in logged), logged
+        if args[0] == "sequence" and args[1].endswith(".npz"):  # the command says what it read
+            assert "gap.npz: array 'X' read as F3K: F=6 frames of K=4 points" in logged[0]
     monkeypatch.setattr("sys.argv", ["c3dpo-import", *cases[0][0], "--out_dir", str(tmp_path),
                                      "--verbose"])
     with pytest.raises(ValueError, match="NaN or inf"):  # --verbose: the exception itself

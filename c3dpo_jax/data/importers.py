@@ -30,7 +30,7 @@ import re
 import sys
 
 import numpy as np
-from absl import logging
+from absl import flags, logging
 
 from c3dpo_jax import cli, skeletons
 from c3dpo_jax.data import json_dataset
@@ -99,10 +99,13 @@ def load_sequence(path: str, key: str = "X", layout: str | None = None) -> np.nd
     if x.shape[2] != 3:
         raise ValueError(f"{path}: array {key!r} read as {layout} has {x.shape[2]} coordinates "
                          "per point, not 3")
-    logging.info("%s: array %r read as %s: F=%d frames of K=%d points%s", path, key, layout,
-                 x.shape[0], x.shape[1], "" if x.shape[0] >= x.shape[1] else
-                 " (fewer frames than points: if the array's axes are the other way round, "
-                 "pass --layout)")
+    if x.shape[0] >= x.shape[1]:
+        logging.info("%s: array %r read as %s: F=%d frames of K=%d points", path, key, layout,
+                     *x.shape[:2])
+    else:
+        logging.warning("%s: array %r read as %s: F=%d frames of K=%d points, fewer frames than "
+                        "points: if the array's axes are the other way round, pass --layout",
+                        path, key, layout, *x.shape[:2])
     return x
 
 
@@ -542,6 +545,12 @@ def cli_main() -> None:
     commands print them (``--verbose``: the traceback instead)."""
     argv = sys.argv[1:]
     verbose = "--verbose" in argv
+    # What was read (F, K, layout) is logged as by the other commands, whose absl.app sets
+    # this up: argparse reads these arguments, so absl's own flags keep their defaults.
+    flags.FLAGS.mark_as_parsed()
+    logging.use_absl_handler()
+    logging.set_verbosity(logging.INFO)
+    cli.setup_logging()
     try:
         main([a for a in argv if a != "--verbose"])
     except cli.USER_ERRORS as err:
