@@ -37,7 +37,12 @@ def _header(config) -> str:
     """What runs, in two or three lines (the whole resolved config is in WORKDIR/config.json)."""
     flag = flags.FLAGS[_CONFIG.name]
     d = config.data
-    data = f"{d.train_path} / {d.test_path}" if d.train_path else d.name
+    if d.train_path:
+        data = f"{d.train_path} / {d.test_path}"
+    elif d.source == "release" or d.name == d.source:
+        data = d.name
+    else:  # e.g. a release config's :smoke variant, which trains on generated data
+        data = f"{d.source} (generated, in place of {d.name})"
     lines = [f"c3dpo_jax {_MODE.value}: {config_flags.get_config_filename(flag)} -> "
              f"{_WORKDIR.value}", f"  data: {data}, {config.model.n_keypoints} keypoints"]
     if _MODE.value == "train":
@@ -47,6 +52,16 @@ def _header(config) -> str:
     if overrides:
         lines.append("  overrides: " + ", ".join(f"{k}={v}" for k, v in overrides.items()))
     return "\n".join(lines)
+
+
+def _method(config) -> str:
+    """The results table's name for what was trained: C3DPO, one of the paper's ablations
+    (C3DPO-base, C3DPO-equiv) or the network trained with the 3D truth, which is not C3DPO."""
+    if config.loss.w_supervised > 0:
+        return "3D-supervised network"
+    if not config.model.canonicalization:
+        return "C3DPO-equiv" if config.model.z_equivariance else "C3DPO-base"
+    return "C3DPO"
 
 
 def _write_figures(config, workdir):
@@ -83,16 +98,22 @@ def main(argv):
             _write_figures(config, _WORKDIR.value)
     else:
         results = train.evaluate_checkpoint(config, _WORKDIR.value)
-    rows = {"C3DPO": results["final"], **results.get("baselines", {})}
+    rows = {_method(config): results["final"], **results.get("baselines", {})}
     print(f"\nTest split ({results['final']['n_samples']} samples, protocol "
           f"'{config.data.protocol}'), step {results['final']['step']}:")
     print(evaluation.format_table(rows))
     if "inference" in results["final"]:
-        print("C3DPO scored with inference options other than the training's: " + ", ".join(
-            f"model.{k}={v}" for k, v in results["final"]["inference"].items()))
+        options = ", ".join(f"model.{k}={v}" for k, v in results["final"]["inference"].items())
+        print(f"{_method(config)} scored with inference options other than the training's: "
+              f"{options}")
+    if "mpjpe" in results["final"]:
+        print("mpjpe: per view the better of the 3D prediction and its depth mirror image (the "
+              "protocol); mpjpe_orig: the prediction as it is; stress: the error of the "
+              "distances between points")
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape has the other "
-              "handedness (0: one for all; about 0.5: a coin toss per view, docs/data.md)")
+              "handedness than most (0: one for all; about 0.5: a coin toss per view, "
+              "docs/data.md)")
     print(f"results written to {_WORKDIR.value}/eval_results.json")
     sys.stdout.flush()
 

@@ -5,6 +5,7 @@ import ast
 import importlib.util
 import logging
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -200,3 +201,33 @@ def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_
     assert stray.returncode == 2
     assert stray.stderr == ("error: unexpected argument(s) 'False': give every value with '=' "
                             "(e.g. --config.model.canonicalization=False)\n")
+
+
+def test_the_results_table_names_what_was_trained():
+    from c3dpo_jax import main
+
+    names = {arg: main._method(cli.get_config(arg)) for arg in (
+        "configs/own_json.py", "configs/own_json.py:supervised", "configs/synthetic.py:base",
+        "configs/synthetic.py:equiv", "configs/h36m.py")}
+    assert names == {"configs/own_json.py": "C3DPO",
+                     "configs/own_json.py:supervised": "3D-supervised network",
+                     "configs/synthetic.py:base": "C3DPO-base",
+                     "configs/synthetic.py:equiv": "C3DPO-equiv", "configs/h36m.py": "C3DPO"}
+
+
+def test_the_config_reference_names_every_field():
+    from configs import default
+
+    with open(os.path.join(ROOT, "docs", "config.md")) as f:
+        names = set(re.findall(r"`([a-z_]+(?:\.[a-z_*]+)+)`", f.read()))
+
+    def leaves(cfg, prefix=""):
+        for key, value in cfg.items():
+            if hasattr(value, "items"):
+                yield from leaves(value, f"{prefix}{key}.")
+            else:
+                yield prefix + key
+
+    fields = [f for f in leaves(default.get_config()) if "." in f]
+    missing = [f for f in fields if f not in names and f.rsplit(".", 1)[0] + ".*" not in names]
+    assert not missing, f"docs/config.md does not list {missing}"
