@@ -13,6 +13,8 @@ Paper Sec. 4.2: MPJPE is evaluated for the prediction and its depth-flipped copy
 the better of the two is kept (per sample); stress is invariant to the flip.
 """
 
+import math
+
 import numpy as np
 from scipy.spatial.distance import pdist
 
@@ -160,11 +162,20 @@ def mirrored_fraction(shape_canonical: np.ndarray, max_samples: int = 5000) -> f
 def format_table(
     rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
 ) -> str:
-    """Plain-text table: one row per method, one column per metric ("-" where absent)."""
+    """Plain-text table: one row per method, one column per metric ("-" where absent).
+
+    Four decimals, or four significant digits in exponent form for values that four
+    decimals would show as 0.0000 or that would not fit the column (data in other units)."""
     keys = [k for k in keys if any(k in res for res in rows.values())]
-    width = max(len(name) for name in rows) + 2
+    width = max(len(name) for name in [*rows, "method"]) + 2
+
+    def cell(value) -> str:
+        value = float(value)
+        plain = 1e-3 <= abs(value) < 1e6 or value == 0 or not math.isfinite(value)
+        return f"{value:13.4f}" if plain else f"{value:13.3e}"
+
     lines = ["method".ljust(width) + "".join(k.rjust(13) for k in keys)]
     for name, res in rows.items():
-        cells = [f"{res[k]:13.4f}" if k in res else "-".rjust(13) for k in keys]
+        cells = [cell(res[k]) if k in res else "-".rjust(13) for k in keys]
         lines.append(name.ljust(width) + "".join(cells))
     return "\n".join(lines)

@@ -40,6 +40,7 @@ class Range:
     lo_open: bool = False
     hi_open: bool = False
     integer: bool = False
+    why: str = ""  # said after the range in the message
 
     def __contains__(self, value: Any) -> bool:
         if isinstance(value, bool) or not isinstance(value, int | float):
@@ -56,9 +57,8 @@ class Range:
         kind = "an integer" if self.integer else "a finite number"
         lo = None if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo:g}"
         hi = None if self.hi is None else f"{'<' if self.hi_open else '<='} {self.hi:g}"
-        if lo and hi:
-            return f"{kind} {lo} and {hi}"
-        return f"{kind} {lo or hi}" if lo or hi else kind
+        text = f"{kind} {lo} and {hi}" if lo and hi else f"{kind} {lo or hi}" if lo or hi else kind
+        return f"{text}: {self.why}" if self.why else text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,7 +133,9 @@ RULES: dict[str, Range | OneOf] = {
     "optim.gamma": POSITIVE,
     "optim.warmup_steps": COUNT,
     "optim.cosine_steps": COUNT,
-    "train.batch_size": POSITIVE_INT,
+    # BatchNorm normalises by the batch's statistics: one view alone is its own mean, and
+    # trained so the model output garbage of size 1e9 at evaluation.
+    "train.batch_size": Range(lo=2, integer=True, why="BatchNorm needs two views or more"),
     "train.samples_per_epoch": POSITIVE_INT,
     "train.epochs": COUNT,
     "train.num_steps": COUNT,  # 0: epochs * samples_per_epoch // batch_size

@@ -110,6 +110,14 @@ def test_table_marks_missing_metrics():
     assert "reprojection" in table and table.splitlines()[2].rstrip().endswith("-")
 
 
+def test_table_columns_keep_their_width_and_tiny_values_their_digits():
+    table = evaluation.format_table({"a": {"mpjpe": 1.8e9, "stress": 0.25},
+                                     "b": {"mpjpe": 1.234e-5, "stress": 0.0}})
+    header, a, b = table.splitlines()
+    assert len(a) == len(b) == len(header)
+    assert a.split()[1:] == ["1.800e+09", "0.2500"] and b.split()[1:] == ["1.234e-05", "0.0000"]
+
+
 def test_errors_of_visible_and_hidden_points_are_split_after_the_flip():
     rng = np.random.default_rng(4)
     gt = rng.normal(size=(3, 5, 3))

@@ -32,8 +32,10 @@ def test_every_bundled_config_is_valid(name):
 
 
 BAD = [
-    ("train.batch_size", 0, "config.train.batch_size=0 (must be an integer >= 1)"),
-    ("train.batch_size", -4, "config.train.batch_size=-4 (must be an integer >= 1)"),
+    ("train.batch_size", 1, "config.train.batch_size=1 (must be an integer >= 2: BatchNorm "
+                            "needs two views or more)"),
+    ("train.batch_size", -4, "config.train.batch_size=-4 (must be an integer >= 2: BatchNorm "
+                             "needs two views or more)"),
     ("train.ckpt_every", 0, "config.train.ckpt_every=0 (must be an integer >= 1)"),
     ("train.eval_batch_size", 0, "config.train.eval_batch_size=0 (must be an integer >= 1)"),
     ("train.num_steps", -5, "config.train.num_steps=-5 (must be an integer >= 0)"),
@@ -94,7 +96,8 @@ def test_cross_field_rules():
 def test_plain_dicts_and_partial_configs_are_checked():
     assert validation.config_problems({"train": {"batch_size": 8}}) == []
     assert validation.config_problems({"train": {"batch_size": True}}) == [
-        "config.train.batch_size=True (must be an integer >= 1)"
+        "config.train.batch_size=True (must be an integer >= 2: BatchNorm needs two views or "
+        "more)"
     ]
     assert validation.config_problems({"model": {"n_keypoints": "17"}}) == [
         "config.model.n_keypoints='17' (must be an integer >= 1)"
