@@ -7,8 +7,10 @@ Protocols (``protocol`` argument):
 - ``"default"`` / ``"up3d"``: mean depth of pred and gt set to 0, plain averages.
 - ``"h36m"``: pred and gt made relative to joint 0, errors times ``scale``, averaged
   per action (``group``) first, then over actions.
-- ``"pascal3d"``: mask = class_mask * kp_defined, masked mean depth set to 0,
-  averaged per class (``group``) first, then over classes.
+- ``"pascal3d"``: masked mean depth set to 0, averaged per class (``group``) first, then
+  over classes.
+In every protocol only the points that ``class_mask`` and ``kp_defined`` keep (where the
+data has them) count.
 Paper Sec. 4.2: MPJPE is evaluated for the prediction and its depth-flipped copy and
 the better of the two is kept (per sample); stress is invariant to the flip.
 """
@@ -80,15 +82,14 @@ def evaluate(pred: np.ndarray, data: KeypointData, protocol: str = "default") ->
         raise ValueError("this split has no 3D ground truth (kp_loc_3d); cannot compute MPJPE")
     pred = np.asarray(pred, np.float64)
     gt = data.kp3d.astype(np.float64)
-    mask = np.ones(gt.shape[:2])
+    mask = np.ones(gt.shape[:2])  # points outside the class or without ground truth: none
+    for extra in (data.class_mask, data.kp_defined):
+        if extra is not None:
+            mask = mask * extra
     if protocol == "h36m":
         pred, gt = pred - pred[:, :1], gt - gt[:, :1]
         scale = data.scale if data.scale is not None else np.ones(len(data))
     elif protocol in ("default", "up3d", "pascal3d"):
-        if protocol == "pascal3d":
-            for extra in (data.class_mask, data.kp_defined):
-                if extra is not None:
-                    mask = mask * extra
         pred, gt = center_depth(pred, mask), center_depth(gt, mask)
         scale = np.ones(len(data))
     else:

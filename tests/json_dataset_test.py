@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from absl import logging
 
+from c3dpo_jax import evaluation
 from c3dpo_jax.data import json_dataset
 
 
@@ -43,7 +44,11 @@ def test_pascal_bbox_rule_hides_points_outside_the_enlarged_box():
     (lambda e: e[2]["kp_loc"][0].__setitem__(1, "1.5"),
      "entry 2: field 'kp_loc' is a ragged or non-numeric"),  # a number as a string
     (lambda e: e[0]["kp_loc"][1].__setitem__(0, None),
-     "entry 0: field 'kp_loc' is a ragged or non-numeric"),  # null, not NaN
+     "entry 0: field 'kp_loc' contains NaN or inf at visible point 0 (or null)"),
+    (lambda e: e[0]["kp_vis"].__setitem__(1, float("nan")),
+     "entry 0: field 'kp_vis' has value nan at point 1 (must be 0 or 1)"),
+    (lambda e: e[3]["kp_loc_3d"][2].__setitem__(4, None),
+     "entry 3: field 'kp_loc_3d' contains NaN or inf"),  # a point that counts
     (lambda e: e[3].update(kp_vis=[1] * 4), "entry 3: field 'kp_vis' has 4 keypoints but the "
      "dataset has 5 keypoints (K must be the same in every entry)"),
     (lambda e: e[0]["kp_loc"][1].__setitem__(2, float("nan")),
@@ -65,6 +70,25 @@ def test_each_problem_is_reported_with_entry_and_field(mutate, message):
         json_dataset.parse(entries, name="toy")
     assert message in str(err.value)
     assert "drop_invalid=True" in str(err.value)
+
+
+def test_points_that_do_not_count_may_hold_null_nan_or_a_placeholder():
+    # What other tools write for a missing value: null (JSON.stringify(NaN), pandas) at a
+    # hidden 2D point, and at a 3D point that kp_defined marks as undefined, NaN or a
+    # placeholder far away. They are stored as 0 and none of them is scored.
+    entries = [dict(e, kp_defined=[1, 1, 1, 1, 0]) for e in _entries()]
+    entries[0]["kp_vis"][3] = 0
+    entries[0]["kp_loc"][0][3] = None
+    entries[1]["kp_loc_3d"][1][4] = None
+    entries[2]["kp_loc_3d"][0][4] = float("nan")
+    for e in entries[3:]:
+        e["kp_loc_3d"][2][4] = 1e9
+    data = json_dataset.parse(entries)
+    assert np.all(data.kp[0, 3] == 0) and np.all(data.kp3d[:, 4] == 0)
+    pred = data.kp3d.copy()
+    pred[:, 4] = 1e6  # garbage where the ground truth is undefined
+    for protocol in ("default", "up3d", "h36m", "pascal3d"):
+        assert evaluation.evaluate(pred, data, protocol)["mpjpe"] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_drop_invalid_drops_counts_and_logs(monkeypatch):

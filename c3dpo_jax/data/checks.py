@@ -57,8 +57,21 @@ class Problems:
 _NUMBERS = "biuf"  # JSON numbers and booleans (0 / 1), not strings or null
 
 
-def stack(entries, field: str, shape: tuple, problems: Problems) -> np.ndarray:
-    """(M, *shape) float32; ragged, non-numeric (strings, null) or misshaped entries become
+def _null_as_nan(value):
+    """Nested lists with JSON null (None) read as NaN; anything else but numbers raises."""
+    if isinstance(value, list):
+        return [_null_as_nan(v) for v in value]
+    if value is None:
+        return np.nan
+    if isinstance(value, bool | int | float):
+        return value
+    raise TypeError(type(value).__name__)
+
+
+def stack(entries, field: str, shape: tuple, problems: Problems, *, null: bool = False
+          ) -> np.ndarray:
+    """(M, *shape) float32; ragged, non-numeric (strings; null unless ``null``: then it
+    reads as NaN, which the caller's checks judge by point) or misshaped entries become
     problems (NaN)."""
     try:  # Fast path: one conversion for the whole file.
         arr = np.asarray([e[field] for e in entries])
@@ -69,7 +82,7 @@ def stack(entries, field: str, shape: tuple, problems: Problems) -> np.ndarray:
     out = np.full((len(entries), *shape), np.nan, np.float32)
     for i, e in enumerate(entries):
         try:
-            value = np.asarray(e[field])
+            value = np.asarray(_null_as_nan(e[field]) if null else e[field])
             if value.dtype.kind not in _NUMBERS:
                 raise TypeError(value.dtype)
         except (ValueError, TypeError):
@@ -159,9 +172,9 @@ def check_keypoints(kp: np.ndarray, vis: np.ndarray, min_visible: int, problems:
     finite and not far outside the file's others (``check_magnitude``; hidden points are
     not looked at), visibilities 0 or 1, at least ``min_visible`` visible points."""
     for i, k in zip(*np.nonzero((vis != 0) & ~np.isfinite(kp).all(-1)), strict=True):
-        problems.add(i, f"field 'kp_loc' contains NaN or inf at visible point {k}")
+        problems.add(i, f"field 'kp_loc' contains NaN or inf at visible point {k} (or null)")
     check_magnitude(kp, vis == 1, "kp_loc", "visible point", problems)
-    bad_vis = ~((vis == 0) | (vis == 1) | np.isnan(vis))
+    bad_vis = ~((vis == 0) | (vis == 1))  # NaN too (a list that stack refused is named)
     for i, k in zip(*np.nonzero(bad_vis), strict=True):
         problems.add(i, f"field 'kp_vis' has value {vis[i, k]:g} at point {k} (must be 0 or 1)")
     counts = np.nansum(vis, axis=1)

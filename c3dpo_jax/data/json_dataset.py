@@ -33,7 +33,7 @@ from absl import logging
 from c3dpo_jax.data import checks
 from c3dpo_jax.data.dataset import KeypointData
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 _OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
 
 
@@ -75,13 +75,24 @@ def _optional_fields(entries, n: int, problems: checks.Problems) -> dict:
         for i in np.flatnonzero(~np.asarray(present)):
             problems.add(i, f"field {field!r} is missing (other entries have it)")
         filled = [e if field in e else {field: np.zeros(shape).tolist()} for e in entries]
-        value = checks.stack(filled, field, shape, problems)
-        checks.check_finite(np.flatnonzero(~np.isfinite(value).reshape(len(value), -1).all(1)),
-                            field, problems)
+        value = checks.stack(filled, field, shape, problems, null=field == "kp_loc_3d")
         out[field] = np.swapaxes(value, 1, 2) if transpose else value
-    if "kp_loc_3d" in out:  # every point counts in the evaluation unless kp_defined says not
-        defined = out.get("kp_defined", np.ones(out["kp_loc_3d"].shape[:2])) > 0
-        checks.check_magnitude(out["kp_loc_3d"], defined, "kp_loc_3d", "point", problems)
+    for field in out:
+        if field != "kp_loc_3d":
+            checks.check_finite(np.flatnonzero(
+                ~np.isfinite(out[field]).reshape(len(entries), -1).all(1)), field, problems)
+    if "kp_loc_3d" in out:
+        # A 3D point counts in the evaluation unless kp_defined or class_mask says not; the
+        # others may hold anything (null, NaN, a placeholder) and are stored as 0.
+        points = out["kp_loc_3d"]
+        counts = np.ones(points.shape[:2], bool)
+        for mask in ("kp_defined", "class_mask"):
+            if mask in out:
+                counts &= np.nan_to_num(out[mask]) != 0
+        checks.check_finite(np.flatnonzero((counts & ~np.isfinite(points).all(-1)).any(1)),
+                            "kp_loc_3d", problems)
+        checks.check_magnitude(points, counts, "kp_loc_3d", "point", problems)
+        out["kp_loc_3d"] = np.where(counts[..., None], points, np.float32(0))
     return out
 
 
@@ -122,7 +133,7 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     ok = [e if i not in problems.by_entry else {"kp_loc": [[]], "kp_vis": []}
           for i, e in enumerate(entries)]
     n = checks.n_keypoints(ok, problems)
-    kp = np.swapaxes(checks.stack(ok, "kp_loc", (2, n), problems), 1, 2)
+    kp = np.swapaxes(checks.stack(ok, "kp_loc", (2, n), problems, null=True), 1, 2)
     vis = checks.stack(ok, "kp_vis", (n,), problems)
     checks.check_keypoints(kp, vis, min_visible, problems)
     fields = _optional_fields(ok, n, problems)
