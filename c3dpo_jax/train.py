@@ -293,8 +293,9 @@ def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = N
     if config.model.keypoint_rescale != 0:
         return config
     config = config.copy_and_resolve_references()
+    perspective = config.model.projection_type == "perspective"
     config.model.keypoint_rescale = ((saved or {}).get("model", {}).get("keypoint_rescale")
-                                     or auto_keypoint_rescale(train_data))
+                                     or auto_keypoint_rescale(train_data, calibrate=perspective))
     logging.info("input scale from the training data: model.keypoint_rescale=%.6g",
                  config.model.keypoint_rescale)
     return config
@@ -346,6 +347,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                               for k in ("train_path", "test_path") if config.data[k]})
     checkpoint.check_workdir(workdir, record)
     record["software"] = checkpoint.software_history(workdir)
+    if spec.model.projection_type != "perspective" and train_data.intrinsics is not None:
+        logging.warning("the training data has intrinsics (K) and the model is orthographic, "
+                        "which ignores them (--config.model.projection_type=perspective uses "
+                        "them)")
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
     _check_data(train_data, spec.model, "train", with_3d=with_3d)
     _check_data(test_data, spec.model, "test")

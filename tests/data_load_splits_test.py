@@ -90,3 +90,17 @@ def test_resolve_input_scale_only_replaces_zero():
     assert c.model.keypoint_rescale == 0  # a copy, the caller's config is unchanged
     c.model.keypoint_rescale = 0.25
     assert train.resolve_input_scale(c, data).model.keypoint_rescale == 0.25
+
+
+def test_the_input_scale_uses_the_intrinsics_only_for_a_perspective_model():
+    from c3dpo_jax import train
+    from c3dpo_jax.data import KeypointData
+    # Two points 2 px apart (RMS radius 1), 0.004 apart once calibrated by a focal length
+    # of 500 px (RMS radius 0.002).
+    k = np.array([[[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]])
+    data = KeypointData(kp=np.array([[[320.0, 240.0], [322.0, 240.0]]]), vis=np.ones((1, 2)),
+                        intrinsics=k)
+    c = own_json.get_config()
+    assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(1.0)
+    c.model.projection_type = "perspective"
+    assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(500.0)

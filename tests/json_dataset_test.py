@@ -91,6 +91,14 @@ def test_points_that_do_not_count_may_hold_null_nan_or_a_placeholder():
         assert evaluation.evaluate(pred, data, protocol)["mpjpe"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_singular_intrinsics_are_named():
+    entries = [dict(e, K=[[500.0, 0, 2], [0, 500, 1], [0, 0, 1]]) for e in _entries()]
+    entries[2]["K"] = [[0, 0, 0], [0, 0, 0], [0, 0, 1]]
+    with pytest.raises(ValueError, match=r"entry 2: field 'K' is singular \(the intrinsics "
+                       "must be invertible\)"):
+        json_dataset.parse(entries)
+
+
 def test_drop_invalid_drops_counts_and_logs(monkeypatch):
     entries = _entries(6)
     entries[1]["kp_vis"][0] = 5

@@ -85,16 +85,19 @@ def fingerprint(data: KeypointData) -> str:
     return digest.hexdigest()
 
 
-def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0) -> float:
+def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
+                          calibrate: bool | None = None) -> float:
     """The ``model.keypoint_rescale`` that gives the views' 2D points, centred on their
     visible mean, a median RMS radius of ``target_rms``.
 
     The paper scales the centred 2D points of a dataset so that their extent is about
     [-1, 1]; the median over views of the RMS radius is a robust form of that rule, the
-    same in any units. Points are calibrated with ``intrinsics`` first when the data has
-    them (what a perspective model sees)."""
+    same in any units. With ``calibrate`` (default: when the data has ``intrinsics``) the
+    points are calibrated with them first, as a perspective model sees them; an
+    orthographic model sees the points as they are, whatever intrinsics the data has."""
     kp, vis = np.asarray(data.kp, np.float64), np.asarray(data.vis, np.float64)
-    if data.intrinsics is not None:
+    calibrate = data.intrinsics is not None if calibrate is None else calibrate
+    if calibrate and data.intrinsics is not None:
         homo = np.concatenate([kp, np.ones_like(kp[..., :1])], -1)
         cal = np.einsum("mij,mnj->mni", np.linalg.inv(data.intrinsics.astype(np.float64)), homo)
         kp = cal[..., :2] / cal[..., 2:]

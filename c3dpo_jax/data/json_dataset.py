@@ -81,6 +81,11 @@ def _optional_fields(entries, n: int, problems: checks.Problems) -> dict:
         if field != "kp_loc_3d":
             checks.check_finite(np.flatnonzero(
                 ~np.isfinite(out[field]).reshape(len(entries), -1).all(1)), field, problems)
+    if "K" in out:  # a perspective model divides by them
+        with np.errstate(invalid="ignore"):
+            cond = np.linalg.cond(np.nan_to_num(out["K"].astype(np.float64)))
+        for i in np.flatnonzero(~(cond < 1e12)):
+            problems.add(i, "field 'K' is singular (the intrinsics must be invertible)")
     if "kp_loc_3d" in out:
         # A 3D point counts in the evaluation unless kp_defined or class_mask says not; the
         # others may hold anything (null, NaN, a placeholder) and are stored as 0.
