@@ -18,6 +18,7 @@ import ast
 import importlib.util
 import logging as py_logging
 import os
+import signal
 import sys
 from collections.abc import Callable
 
@@ -189,8 +190,11 @@ def is_verbose(verbose: flags.FlagHolder) -> bool:
     return verbose.value or logging.get_verbosity() >= logging.DEBUG
 
 
-def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
-    """``app.run(main)`` as the package's commands run (module docstring)."""
+def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder,
+        on_interrupt: str = "stopped") -> None:
+    """``app.run(main)`` as the package's commands run (module docstring). A Ctrl-C that
+    ``main`` does not handle itself ends with one line, ``interrupted: ON_INTERRUPT``, and
+    exit status 130 (``--verbose``: the traceback)."""
     # --helpshort lists the flags of the file in argv[0]: a console script defines none; and
     # --help starts with __main__'s docstring, which a console script's wrapper lacks.
     for flag in flags.FLAGS.get_key_flags_for_module(main.__module__):
@@ -209,6 +213,11 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder) -> None:
             if is_verbose(verbose):
                 raise
             fail(err)
+        except KeyboardInterrupt:
+            if is_verbose(verbose):
+                raise
+            print(f"interrupted: {on_interrupt}", file=sys.stderr, flush=True)
+            sys.exit(128 + signal.SIGINT)
 
     app.run(guarded, flags_parser=_parse_flags)
 

@@ -120,7 +120,9 @@ def main(argv):
 
 def cli_main():
     """The ``c3dpo-train`` console script."""
-    cli.run(main, _VERBOSE)
+    cli.run(main, _VERBOSE, on_interrupt=(
+        "the checkpoints written so far are kept, and the same command resumes from the "
+        "latest (and scores it, if training had finished)"))
 
 
 if __name__ == "__main__":

@@ -231,3 +231,18 @@ def test_the_config_reference_names_every_field():
     fields = [f for f in leaves(default.get_config()) if "." in f]
     missing = [f for f in fields if f not in names and f.rsplit(".", 1)[0] + ".*" not in names]
     assert not missing, f"docs/config.md does not list {missing}"
+
+
+def test_a_ctrl_c_outside_the_training_loop_ends_with_one_line():
+    # Loading, compiling, the final evaluation or the pictures: KeyboardInterrupt reaches
+    # the command's wrapper, which says so in one line with the shell's status for SIGINT.
+    script = ("from absl import flags\nfrom c3dpo_jax import cli\n"
+              "verbose = flags.DEFINE_bool('verbose', False, '')\n"
+              "def main(argv):\n    raise KeyboardInterrupt\n"
+              "cli.run(main, verbose, on_interrupt='nothing was written')\n")
+    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 130 and out.stderr == "interrupted: nothing was written\n", out
+    out = subprocess.run([sys.executable, "-c", script, "--verbose"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0 and "Traceback" in out.stderr and "KeyboardInterrupt" in out.stderr
