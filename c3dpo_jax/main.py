@@ -71,7 +71,12 @@ def _write_figures(config, workdir):
         from c3dpo_jax.data import load_splits
         from c3dpo_jax.reconstruct import load, reconstruct_data
 
-        test = load_splits(config.data)[1]
+        verbosity = logging.get_verbosity()  # the data's warnings were given at training
+        logging.set_verbosity(logging.ERROR)
+        try:
+            test = load_splits(config.data)[1]
+        finally:
+            logging.set_verbosity(verbosity)
         visualise.write_run_figures(workdir, test, reconstruct_data(load(workdir), test, 3))
     except Exception as err:  # noqa: BLE001 (pictures are optional)
         logging.warning("could not write figures to %s/figures: %r", workdir, err)

@@ -169,6 +169,29 @@ def test_some_coincident_views_are_a_warning(monkeypatch):
     assert logged == []
 
 
+def test_views_with_two_points_and_repeated_views_are_warnings(monkeypatch):
+    rng = np.random.default_rng(0)
+    kp = rng.normal(size=(6, 12, 2))
+    logged = []
+    monkeypatch.setattr(logging, "warning", lambda msg, *a: logged.append(msg % a))
+    vis = np.zeros((6, 12))
+    vis[:, :2] = 1
+    vis[0] = 1
+    check_spread(KeypointData(kp=kp, vis=vis, name="d"), "train")
+    assert logged == ["train split 'd': half of the views show 2 point(s) or fewer; a view's "
+                      "depth is learnt from how its visible points move together, and two "
+                      "points say almost nothing about it"]
+    logged.clear()
+    kp[2:] = kp[0]  # five copies of one view; what a hidden point holds does not count
+    kp[4, 5] = 99.0
+    vis = np.ones((6, 12))
+    vis[4, 5] = 0
+    vis[5] = vis[4]
+    check_spread(KeypointData(kp=kp, vis=vis, name="d"), "train")
+    assert logged == ["train split 'd': only 3 of its 6 views differ from each other; repeated "
+                      "views add nothing to learn from"]
+
+
 def test_cli_names_the_bad_entry_in_one_line(tmp_path):
     bad = _entries(k=20)
     bad[3]["kp_loc"][0][7] = 1e20

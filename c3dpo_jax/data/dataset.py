@@ -131,3 +131,19 @@ def check_spread(data: KeypointData, split: str) -> None:
         logging.warning("%s: %d of %d views have visible points that all coincide (entries "
                         "%s%s); they carry no shape", what, coincident.size, len(data),
                         coincident[:5].tolist(), " ..." if coincident.size > 5 else "")
+    visible = np.median(data.vis.sum(1))
+    if visible < 3 <= data.n_keypoints:
+        logging.warning("%s: half of the views show %g point(s) or fewer; a view's depth is "
+                        "learnt from how its visible points move together, and two points "
+                        "say almost nothing about it", what, visible)
+    # Views that are the same: one random projection of each view's visible points and
+    # visibilities (equal views give equal numbers; others, almost surely not), ~100x faster
+    # than comparing whole rows.
+    rng = np.random.default_rng(0)
+    seen = np.where(data.vis[..., None] > 0, data.kp, np.float32(0))
+    key = (np.einsum("mnc,nc->m", seen, rng.normal(size=seen.shape[1:]))
+           + data.vis @ rng.normal(size=data.n_keypoints))
+    distinct = len(np.unique(key))
+    if distinct <= len(data) // 2:
+        logging.warning("%s: only %d of its %d views differ from each other; repeated views "
+                        "add nothing to learn from", what, distinct, len(data))
