@@ -448,7 +448,7 @@ def turns_in_range(cfg: ModelConfig) -> np.ndarray:
 def orthographic_only(used: bool, off: str, projection_type: str) -> str:
     """The problem of a setting for orthographic models (``off``: its value that turns it
     off) when it is ``used`` with another projection; '' otherwise."""
-    if used and projection_type != "orthographic":
+    if used and projection_type == "perspective":  # another value has its own problem
         return f"must be {off} for a perspective model: orthographic models only"
     return ""
 

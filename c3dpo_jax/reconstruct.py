@@ -130,7 +130,8 @@ def _as_batch(name: str, x, tail: tuple[int, ...], single: bool, finite: bool = 
     x = _numeric(name, x, dtype)
     want = tail if single else ("B", *tail)
     if x.ndim != len(want) or x.shape[x.ndim - len(tail):] != tail:
-        raise ValueError(f"{name} has shape {x.shape}, expected {want}")
+        raise ValueError(f"{name} has shape {x.shape}, expected "
+                         f"({', '.join(str(d) for d in want)}{',' if len(want) == 1 else ''})")
     if finite and not np.all(np.isfinite(x)):
         raise ValueError(f"{name} contains NaN or inf")
     return x[None] if single else x

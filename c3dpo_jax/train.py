@@ -314,6 +314,12 @@ def _start_from(state: TrainState, path: str) -> TrainState:
     return state.replace(params=source["params"], batch_stats=source["batch_stats"])
 
 
+def _check_workdir_is_a_folder(workdir: str) -> None:
+    if os.path.exists(workdir) and not os.path.isdir(workdir):
+        raise ValueError(f"the workdir {workdir} is a file; --workdir names a folder (made if "
+                         "missing)")
+
+
 def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
 
@@ -324,6 +330,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     ``eval_results.json`` content (also written to ``workdir``).
     """
     validation.check_config(config)
+    _check_workdir_is_a_folder(workdir)
     hooks = hooks or Hooks()
     train_data, test_data = load_splits(config.data)
     init_from = config.train.get("init_from") or ""
@@ -361,7 +368,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     state = checkpoint.restore_or_init(
         manager, create_train_state(init_key, spec.model, spec.optimizer()))
     step, total = int(state.step), spec.total_steps
-    if step:
+    if step > total:
+        logging.warning("%s holds a checkpoint at step %d, past the %d steps asked for: it is "
+                        "scored as it is (a new --workdir trains %d steps)", workdir, step,
+                        total, total)
+    elif step:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     elif init_from:
         state = _start_from(state, init_from)
@@ -492,6 +503,7 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     (``model.test_time_*``) differ from the run's, ``final["inference"]`` records the ones
     used, since the history's records were made with the run's.
     """
+    _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
     saved = checkpoint.load_config(workdir)
     config = resolve_input_scale(config, train_data, saved)

@@ -191,7 +191,7 @@ def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     ((3, 6, 2), (3, 6), None, "expects N = 7"),
     ((3, 7, 3), (3, 7), None, "expected"),
     ((2, 3, 7, 2), (3, 7), None, "expected"),
-    ((3, 7, 2), (3, 6), None, "vis has shape"),
+    ((3, 7, 2), (3, 6), None, r"vis has shape \(3, 6\), expected \(B, 7\)"),
     ((3, 7, 2), (2, 7), None, "batch size"),
     ((3, 7, 2), (3, 7), "nan", "NaN or inf"),
     ((3, 7, 2), (3, 7), "vis2", "only 0 and 1"),

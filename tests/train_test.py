@@ -207,6 +207,19 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path):
     assert "inference" not in same["final"]
 
 
+def test_a_workdir_past_the_steps_asked_for_is_scored_and_said_so(tmp_path, caplog):
+    workdir = str(tmp_path / "run")
+    train.train_and_evaluate(_tiny_config(10), workdir)
+    with caplog.at_level("WARNING"):
+        shorter = train.train_and_evaluate(_tiny_config(5), workdir)
+    assert shorter["final"]["step"] == 10
+    assert "holds a checkpoint at step 10, past the 5 steps asked for" in caplog.text
+    (tmp_path / "file").write_text("")
+    for run in (train.train_and_evaluate, train.evaluate_checkpoint):
+        with pytest.raises(ValueError, match="is a file; --workdir names a folder"):
+            run(_tiny_config(5), str(tmp_path / "file"))
+
+
 def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path):
     c = _tiny_config(20)
     c.train.eval_every_steps = 5
