@@ -68,7 +68,7 @@ def read_coco(obj: dict) -> dict[str, np.ndarray]:
 def read_input(path: str) -> dict[str, np.ndarray]:
     """Either input format -> ``kp``, ``vis``, ``index`` (+ ``class_mask``, ``K``, ``kp3d``)."""
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8-sig") as f:
             obj = json.load(f)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:  # say which file
         raise ValueError(f"{path} is not a JSON file: {err}") from err

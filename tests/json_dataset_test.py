@@ -130,6 +130,10 @@ def test_file_level_errors_are_clear(tmp_path):
         json_dataset.load(str(bad))
     with pytest.raises(FileNotFoundError, match="does not exist"):
         json_dataset.load(str(tmp_path / "missing.json"))
+    # A byte-order mark, as some Windows tools write before UTF-8 text, is not an error.
+    marked = tmp_path / "bom.json"
+    marked.write_bytes(b"\xef\xbb\xbf" + json.dumps(_entries()).encode())
+    assert len(json_dataset.load(str(marked), cache=False)) == 4
 
 
 def test_check_n_keypoints_names_the_fix():

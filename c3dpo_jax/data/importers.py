@@ -505,7 +505,7 @@ def main(argv=None) -> None:
                    help=_SKELETON_HELP + " (default: the category's 'skeleton', if any)")
     args = parser.parse_args(argv)
     if args.kind == "coco":
-        with open(args.path) as f:
+        with open(args.path, encoding="utf-8-sig") as f:
             try:
                 obj = json.load(f)
             except json.JSONDecodeError as err:

@@ -224,7 +224,7 @@ def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: 
     cpath = cache_path(path)
     if cache and (data := _read_cache(cpath, key)) is not None:
         return data
-    with open(path, encoding="utf-8") as f:
+    with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows tools) is skipped
         try:
             obj = json.load(f)
         except json.JSONDecodeError as err:
