@@ -20,6 +20,25 @@ def repo_path(path: str) -> str:
     return path if rel == ".." or rel.startswith(".." + os.sep) else rel
 
 
+def run_main(main) -> None:
+    """``app.run(main)`` with an error in the input (a flag's value, a missing file) as one
+    line ``error: ...`` and exit status 2, as the library's commands print them; absl's
+    ``-v 1`` shows the traceback instead."""
+    from absl import app, logging
+
+    from c3dpo_jax import cli
+
+    def guarded(argv):
+        try:
+            main(argv)
+        except (app.UsageError, *cli.USER_ERRORS) as err:
+            if logging.get_verbosity() >= logging.DEBUG:
+                raise
+            cli.fail(err)
+
+    app.run(guarded)
+
+
 def is_finished(workdir: str) -> bool:
     """Whether the run in ``workdir`` has made its final evaluation."""
     path = os.path.join(workdir, "eval_results.json")
@@ -33,6 +52,8 @@ def run_all(jobs: list[tuple[str, list[str]]], n_at_once: int, out: str) -> None
     """Runs ``(workdir, command)`` pairs from the repository root, ``n_at_once`` at a time,
     each pinned to one core (its output in ``workdir/log.txt``); progress lines name the
     workdirs relative to ``out``."""
+    if n_at_once < 1:
+        raise ValueError(f"--jobs={n_at_once} (must be >= 1)")
     cores = sorted(os.sched_getaffinity(0))
     running: dict[int, tuple[subprocess.Popen, str, float]] = {}
     pending = list(jobs)

@@ -60,7 +60,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, repo_path, run_all  # noqa: E402
+from runner import is_finished, repo_path, run_all, run_main  # noqa: E402
 
 NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
@@ -88,8 +88,10 @@ flags.DEFINE_list("seeds", ["0", "1", "2"], "training seeds")
 flags.DEFINE_multi_string("variant", [], "NAME:KEY=VALUE,... (config overrides); 'default' "
                           "(no overrides) runs when no variant is given")
 flags.DEFINE_string("config", "configs/own_json.py", "the config every run starts from")
-flags.DEFINE_string("data_root", os.path.join(ROOT, "..", "shared", "data"),
-                    "directory with nrsfm/ and mocap/")
+flags.DEFINE_string("data_root", os.environ.get("C3DPO_DEV_DATA", ""),
+                    "the folder holding nrsfm/NAME.npz and mocap/NAME.npz, the development "
+                    "sequences, which are not distributed with the repository (default: "
+                    "$C3DPO_DEV_DATA); needed to make a dataset's views the first time")
 flags.DEFINE_string("out", os.path.join(HERE, "results"), "where data, runs and tables go")
 flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
 flags.DEFINE_integer("eval_every_steps", 1000, "test evaluations along the curve")
@@ -196,9 +198,16 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             full, points = SUBSETS.get(name, (name, None))
             full, views = VIEWS.get(full, (full, 3))
             folder = "nrsfm" if full in NRSFM else "mocap"
+            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS}:
+                raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
+                                 "docstring, --helpfull)")
+            if not data_root:
+                raise ValueError(f"{name}'s views are not made yet, and --data_root (or "
+                                 "$C3DPO_DEV_DATA), the folder holding nrsfm/ and mocap/, is "
+                                 "not given")
             path = os.path.join(data_root, folder, f"{full.removesuffix('_clips')}.npz")
             if not os.path.exists(path):
-                raise app.UsageError(f"{path} not found (--data_root)")
+                raise ValueError(f"{path} does not exist (--data_root)")
             x = importers.load_sequence(path)
             kw = {} if full in NRSFM else dict(
                 views_per_frame=views, clip=importers.load_clips(path),
@@ -391,4 +400,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

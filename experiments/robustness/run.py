@@ -26,14 +26,14 @@ import os
 import sys
 
 import numpy as np
-from absl import app, flags
+from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, repo_path, run_all  # noqa: E402
+from runner import is_finished, repo_path, run_all, run_main  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("sigmas", ["0", "0.05", "0.1"], "2D noise std, in median RMS radii")
@@ -267,4 +267,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

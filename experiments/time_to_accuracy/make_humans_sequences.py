@@ -37,4 +37,6 @@ def main(out_dir: str, n_frames: int = 300, seed: int = 0) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 2 or sys.argv[1].startswith("-"):
+        sys.exit(__doc__.split("\n\n")[1])  # the usage line: one folder, no options
     main(sys.argv[1])

@@ -11,7 +11,7 @@ to ``OUT_DIR/DATASET__RECIPE__sSEED.json``::
   python experiments/time_to_accuracy/report.py   # table + figure from all results
 
 Datasets: the sequences of the development data by name (drink, face, jaws, pickup,
-stretch, yoga; not distributed with the repository, looked up in ``NRSFM_DIR``) or any
+stretch, yoga; not distributed with the repository: ``--data_root/nrsfm/NAME.npz``) or any
 ``.npz``/``.mat`` path (views made with ``c3dpo_jax.data.importers.views_from_sequence``:
 ``--views_per_frame`` random cameras per frame, test frames in unseen blocks), or
 ``humans`` (the built-in synthetic humans, configs/humans.py's data), written as JSON views
@@ -42,7 +42,7 @@ import math
 import os
 import sys
 
-from absl import app, flags, logging
+from absl import flags, logging
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))  # for ``configs``
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # for ``runner``
@@ -50,7 +50,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # for ``runne
 import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from runner import repo_path  # noqa: E402
+from runner import repo_path, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, load, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
@@ -58,11 +58,14 @@ from configs import default, release  # noqa: E402
 from configs import humans as humans_config  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-NRSFM_DIR = os.path.join(HERE, "..", "..", "..", "shared", "data", "nrsfm")
 SEQUENCES = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 
 FLAGS = flags.FLAGS
-flags.DEFINE_string("dataset", "pickup", f"one of {SEQUENCES}, 'humans', or a .npz/.mat path")
+flags.DEFINE_string("dataset", "pickup", f"one of {SEQUENCES} (under --data_root), 'humans', "
+                    "or a .npz/.mat path")
+flags.DEFINE_string("data_root", os.environ.get("C3DPO_DEV_DATA", ""),
+                    "the folder holding nrsfm/NAME.npz, the development sequences, which are not "
+                    "distributed with the repository (default: $C3DPO_DEV_DATA)")
 flags.DEFINE_enum("recipe", "cpu", ["cpu", "official"], "training recipe")
 flags.DEFINE_integer("seed", 0, "initialisation and training seed")
 flags.DEFINE_integer("data_seed", 0, "seed of the views (cameras, split); fixed across runs")
@@ -88,10 +91,16 @@ flags.DEFINE_string("save_variables", "", "also write the final model variables 
 
 
 def sequence_path(name: str) -> str:
-    """The file of a sequence: ``name`` itself if it exists, else ``NRSFM_DIR/name.npz``."""
-    path = name if os.path.exists(name) else os.path.join(NRSFM_DIR, f"{name}.npz")
+    """The file of a sequence: ``name`` itself if it exists, else
+    ``--data_root/nrsfm/name.npz``."""
+    if os.path.exists(name):
+        return name
+    if not FLAGS.data_root:
+        raise ValueError(f"--dataset={name} is not a file, and --data_root (or $C3DPO_DEV_DATA), "
+                         "the folder holding nrsfm/NAME.npz, is not given")
+    path = os.path.join(FLAGS.data_root, "nrsfm", f"{name}.npz")
     if not os.path.exists(path):
-        raise app.UsageError(f"no dataset {name!r}: not a file, not in {NRSFM_DIR}")
+        raise ValueError(f"--dataset={name}: not a file, and {path} does not exist")
     return path
 
 
@@ -321,4 +330,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

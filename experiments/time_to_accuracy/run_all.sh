@@ -7,7 +7,7 @@
 #   TAG=_eq03925 SET="model.z_equivariance_rot_angle=0.3925" OUT_DIR=DIR RECIPES=cpu \
 #     bash experiments/time_to_accuracy/run_all.sh   # a setting: recipe name cpu_eq03925
 #
-# Calibration runs (60 s of training, alone) go to results/calibration/; replayed runs
+# Calibration runs (60 s of training, alone) go to OUT_DIR/calibration/; replayed runs
 # to OUT_DIR (results/), the recipe's name followed by TAG, with the config overrides of
 # SET (space-separated KEY=VALUE) on every replayed run. Then: python
 # experiments/time_to_accuracy/report.py
@@ -23,8 +23,9 @@ OUT=${OUT_DIR:-$HERE/results}
 TAG=${TAG:-}
 SET_ARGS=()
 for item in ${SET:-}; do SET_ARGS+=(--set "$item"); done
-CAL=$HERE/results/calibration
+CAL=$OUT/calibration
 mkdir -p "$CAL" "$HERE/logs"
+failed=$(mktemp)  # one line per failed run: the script then exits 1
 
 reuse_calibration() {  # D R: copy R's calibration of another sequence with D's number of points
   "$PY" - "$CAL" "$1" "$2" <<'PYEOF'
@@ -103,7 +104,8 @@ one() {  # one D R S SPS CS [taskset/XLA prefix...]
   local log=$HERE/logs/${d}_${r}${TAG}_s${s}.log
   "$@" "$PY" $HERE/run.py --dataset="$d" --recipe="$r" --seed="$s" --budget_s="$BUDGET" \
     --steps_per_s="$sps" --compile_s="$cs" --out_dir="$OUT" --tag="$TAG" \
-    ${SET_ARGS[@]+"${SET_ARGS[@]}"} < /dev/null > "$log" 2>&1 || echo "FAILED: $d $r $s (see $log)"
+    ${SET_ARGS[@]+"${SET_ARGS[@]}"} < /dev/null > "$log" 2>&1 ||
+    { echo "FAILED: $d $r $s (see $log)"; echo "$d $r $s" >> "$failed"; }
 }
 
 worker() {  # worker CORE: runs jobs from the shared queue on that core
@@ -120,4 +122,10 @@ while read -r line; do
   one $line env
 done < "$serial_file"
 rm -f "$jobs_file" "$jobs_file.lock" "$serial_file"
+if [ -s "$failed" ]; then
+  echo "$(wc -l < "$failed") run(s) failed; their logs are in $HERE/logs" >&2
+  rm -f "$failed"
+  exit 1
+fi
+rm -f "$failed"
 if [ "$OUT" = "$HERE/results" ] && [ -z "$TAG" ]; then "$PY" $HERE/report.py; fi
