@@ -1,7 +1,7 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
-      [--refine_iters=0] [--turns=T]
+      [--refine_iters=0] [--turns=T] [--one_handedness]
 
 (or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
@@ -52,6 +52,10 @@ def _define_flags() -> dict:
         "turns": flags.DEFINE_integer(
             "turns", None, "Copies of each view turned in-plane whose median depth is kept "
             "(1: one pass; default: the model's setting; see reconstruct's turns)."),
+        "one_handedness": flags.DEFINE_bool(
+            "one_handedness", None, "Give every view the handedness of the model's mean shape "
+            "(a view and its depth mirror image fit the same 2D points; a model may lift some "
+            "views one way and the rest the other); default: the model's setting."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 
@@ -160,7 +164,8 @@ def _check_figures(figures: str | None, n_figures: int, skeleton, y_up) -> None:
 
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
         n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None,
-        refine_iters: int | None = None, turns: int | None = None) -> Reconstruction:
+        refine_iters: int | None = None, turns: int | None = None,
+        one_handedness: bool | None = None) -> Reconstruction:
     """What the command line does; returns the reconstructions it wrote."""
     _check_output(output)  # before the work, not after it
     _check_figures(figures, n_figures, skeleton, y_up)
@@ -175,7 +180,7 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
                          "a 'K' field (3 x 3) in every entry of the release's JSON format "
                          "(COCO annotations have none)")
     rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"),
-                      turns=turns, refine_iters=refine_iters)
+                      turns=turns, refine_iters=refine_iters, one_handedness=one_handedness)
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:

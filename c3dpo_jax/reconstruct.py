@@ -293,6 +293,7 @@ def reconstruct(
     turns: int | np.integer | None = None,
     turn_span: str | None = None,
     refine_iters: int | np.integer | None = None,
+    one_handedness: bool | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -315,6 +316,10 @@ def reconstruct(
         for each view (and each turned copy) at inference (0: Phi's output, as the release;
         None: the model's ``test_time_refine_iters``, which the own-data recipe sets);
         orthographic models only. See ``model.refine_camera_and_shape``.
+      one_handedness: give every view the handedness of the model's mean shape (a view
+        and its depth mirror image fit the same 2D points, and a model may lift some views
+        one way and the rest the other; the 2D fit is unchanged); None: the model's
+        ``test_time_one_handedness``; orthographic models only.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions;
@@ -346,6 +351,14 @@ def reconstruct(
             raise ValueError(f"refine_iters={refine_iters} ({problem})")
         params = params.replace(config=dataclasses.replace(
             params.config, test_time_refine_iters=refine_iters))
+    if one_handedness is not None:
+        if not isinstance(one_handedness, bool | np.bool_):
+            raise ValueError(f"one_handedness={one_handedness!r} (must be True, False or None)")
+        problem = model.handedness_problem(bool(one_handedness), params.config.projection_type)
+        if problem:
+            raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
+        params = params.replace(config=dataclasses.replace(
+            params.config, test_time_one_handedness=bool(one_handedness)))
     precise = getattr(kp, "dtype", None) not in (np.float32, np.float16)  # lists: float64
     single, kp, offset, vis, K, class_mask = _check_inputs(params.config, kp, vis, K,
                                                            class_mask)

@@ -164,7 +164,10 @@ def test_cli_writes_json_for_each_kind(tmp_path, capsys):
     (tmp_path / "walk.bvh").write_text(TINY_BVH * 1)
     importers.main(["bvh", str(tmp_path / "walk.bvh"), "--out_dir", str(tmp_path),
                     "--views_per_frame", "4", "--n_blocks", "2", "--test_fraction", "0.5"])
-    assert json_dataset.load(str(tmp_path / "walk_train.json")).kp.shape == (4, 2, 2)
+    train = json_dataset.load(str(tmp_path / "walk_train.json"))
+    assert train.kp.shape == (4, 2, 2)
+    out = capsys.readouterr().out  # the factor that turns errors into the file's units
+    assert f"units: the sequence was divided by {float(train.scale[0]):.6g} (its RMS" in out
     (tmp_path / "c.json").write_text(json.dumps(
         {"annotations": [{"keypoints": [1, 2, 2, 3, 4, 2]}]}))
     importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])

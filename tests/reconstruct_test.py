@@ -4,6 +4,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -146,7 +147,7 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
 
 
 
-def test_refinement_override_the_models_own_setting_and_is_checked(params):
+def test_refinement_override_the_models_own_setting_and_is_checked(params, monkeypatch):
     kp, vis = _inputs(4)
     kp = (kp - 200.0) / 50.0  # the training data's units
     # A shape layer of unit-sized shapes and modes: a well-posed fit.
@@ -174,6 +175,24 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params):
     with pytest.raises(ValueError, match=r"^refine_iters=3 \(must be 0 \(no refinement\) for "
                        r"a perspective model"):
         reconstruct(persp, kp, vis, K=K, refine_iters=3)
+    # one_handedness= reaches the model's option (its effect: model_test) as refine_iters=
+    # does, and None keeps the model's.
+    module = sys.modules["c3dpo_jax.reconstruct"]  # the package's attribute is the function
+    seen = []
+
+    def spy(p, *arrays):
+        seen.append(p.config.test_time_one_handedness)
+        return _reconstruct_batch(p, *arrays)
+
+    monkeypatch.setattr(module, "_reconstruct_batch", spy)
+    handed = C3DPOParams(variables, dataclasses.replace(CFG, test_time_one_handedness=True))
+    for p, option in ((params, True), (handed, False), (handed, None), (params, None)):
+        reconstruct(p, kp, vis, one_handedness=option)
+    assert seen == [True, False, True, False]
+    with pytest.raises(ValueError, match=r"^one_handedness=True \(must be False or None for a "
+                       r"perspective model"):
+        reconstruct(persp, kp, vis, K=K, one_handedness=True)
+
 
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled

@@ -427,8 +427,12 @@ def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str
     paths = [os.path.join(out_dir, f"{name}_{s}.json") for s in ("train", "test")]
     for data, path in zip((train, test), paths, strict=True):
         save(data, path, **style)
-    print(f"wrote {paths[0]} ({len(train)}) and {paths[1]} ({len(test)}); "
+    print(f"wrote {paths[0]} ({len(train)} views) and {paths[1]} ({len(test)} views); "
           f"K={train.n_keypoints}: --config.model.n_keypoints={train.n_keypoints}")
+    if train.scale is not None and not np.allclose(train.scale, 1.0):
+        print(f"units: the sequence was divided by {float(train.scale[0]):.6g} (its RMS radius) "
+              "so that its errors read as fractions of the body's size; times that factor "
+              "they are in the sequence's own units")
 
 
 _SKELETON_HELP = ("lines for the pictures, stored in the files: a built-in name (h36m, "
