@@ -251,10 +251,24 @@ class _AboveTheBar:
         """The handler closes its stream at exit; stderr stays open."""
 
 
+class _PlainFormatter(py_logging.Formatter):
+    """A command's log lines as plain text: the message, ``warning: `` before a warning's
+    (absl's ``I1128 00:04:58.495953 1399... train.py:299]`` prefix is for log files)."""
+
+    def format(self, record: py_logging.LogRecord) -> str:
+        text = record.getMessage()
+        if record.levelno >= py_logging.WARNING:
+            text = f"{py_logging.getLevelName(record.levelno).lower()}: {text}"
+        if record.exc_info:
+            text += "\n" + self.formatException(record.exc_info)
+        return text
+
+
 def setup_logging(hidden: tuple[str, ...] = ()) -> None:
     """Quiet logs for a command: INFO only from c3dpo_jax (not orbax, JAX or matplotlib)
-    and not when its format string starts with one of ``hidden``; every line above the
-    progress bar."""
+    and not when its format string starts with one of ``hidden``; plain lines
+    (``_PlainFormatter``), every one above the progress bar."""
     handler = logging.get_absl_handler()
     handler.addFilter(_LogFilter(hidden))
+    handler.setFormatter(_PlainFormatter())
     handler.python_handler.setStream(_AboveTheBar())

@@ -134,19 +134,48 @@ def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
         raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
 
 
+def _scores(record: dict) -> str:
+    """An evaluation's scores in one short line (all of them: eval_results.json)."""
+    keys = ("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
+    return ", ".join(f"{k} {record[k]:.4g}" for k in keys if k in record)
+
+
 def _next_stop(step: int, total: int, intervals) -> int:
     """The first step after ``step`` that is a multiple of an interval, or ``total``."""
     stops = [total] + [(step // i + 1) * i for i in intervals if i > 0]
     return min(stops)
 
 
+class _BarLines:
+    """The progress bar's stream where stderr is a file or a pipe (a log, ``| tee``, a batch
+    job): each redraw becomes one line, where a terminal's carriage returns would pile every
+    update into one line thousands of characters long."""
+
+    def __init__(self, stream):
+        self.stream, self.last = stream, ""
+
+    def write(self, text: str) -> None:
+        line = text.replace("\r", "").strip("\n")
+        if line.strip() and line != self.last:
+            self.stream.write(line + "\n")
+            self.last = line
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
 def _progress_bar(**kwargs):
     """tqdm's widget bar in a notebook that has ipywidgets, else its text bar (importing
-    tqdm.auto would warn "IProgress not found" in every notebook without ipywidgets)."""
-    if "ipykernel" in sys.modules and importlib.util.find_spec("ipywidgets") is not None:
+    tqdm.auto would warn "IProgress not found" in every notebook without ipywidgets); where
+    stderr is not a terminal (nor a notebook), a line every 30 s (``_BarLines``)."""
+    notebook = "ipykernel" in sys.modules
+    if notebook and importlib.util.find_spec("ipywidgets") is not None:
         from tqdm.auto import tqdm
     else:
         from tqdm import tqdm
+    if not notebook and not sys.stderr.isatty():
+        kwargs.update(file=_BarLines(sys.stderr), mininterval=30.0, ncols=100,
+                      dynamic_ncols=False)
     return tqdm(**kwargs)
 
 
@@ -432,8 +461,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                         checkpoint.save(manager, step, state, force=step == total or stopping)
                     if evaluating:
                         history.append(evaluate(state, step))
-                        logging.info("step %d: test %s", step,
-                                     {k: v for k, v in history[-1].items() if k != "per_group"})
+                        logging.info("test at step %d: %s", step, _scores(history[-1]))
                         run_records.write_results(workdir, {"history": history})
                         writer.events.scalars(step, history[-1], prefix="test/")
                         if hooks.after_evaluation is not None:
@@ -485,13 +513,12 @@ def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, templa
 
 
 def _inference_options(config, saved: dict | None) -> dict:
-    """The config's ``model.test_time_*`` options when any differs from the run's saved
-    config (a run saved without one had the option's default), else ``{}``."""
-    now = {k: v for k, v in json.loads(json.dumps(config.model.to_dict())).items()
-           if k.startswith("test_time_")}
+    """The config's ``model.test_time_*`` options that differ from the run's saved config
+    (the others are in its config.json)."""
+    now = json.loads(json.dumps(config.model.to_dict()))
     before = (saved or {}).get("model", {})
-    differ = any(k in before and before[k] != v for k, v in now.items())
-    return now if differ else {}
+    return {k: v for k, v in now.items()
+            if k.startswith("test_time_") and k in before and before[k] != v}
 
 
 def evaluate_checkpoint(config, workdir: str) -> dict:
@@ -500,8 +527,8 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
     Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
-    (``model.test_time_*``) differ from the run's, ``final["inference"]`` records the ones
-    used, since the history's records were made with the run's.
+    (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
+    differ, since the history's records were made with the run's.
     """
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)

@@ -263,7 +263,7 @@ def test_the_import_command_reports_input_errors_in_one_line(tmp_path, monkeypat
             importers.cli_main()
         *logged, last = capsys.readouterr().err.splitlines()
         assert stop.value.code == 2 and last.startswith(f"error: {message}"), last
-        assert all(line[:1] in "IW" and "importers.py" in line for line in logged), logged
+        assert all("read as" in line for line in logged), logged  # what was read, if anything
         if args[0] == "sequence" and args[1].endswith(".npz"):  # the command says what it read
             assert "gap.npz: array 'X' read as F3K: F=6 frames of K=4 points" in logged[0]
     monkeypatch.setattr("sys.argv", ["c3dpo-import", *cases[0][0], "--out_dir", str(tmp_path),
