@@ -1,12 +1,16 @@
-"""Command line: ``c3dpo-train --config=configs/up3d.py --workdir=DIR`` (or ``python -m
-c3dpo_jax.main ...``).
+r"""Command line: trains C3DPO and scores it (or python -m c3dpo_jax.main ...).
 
-Trains (resuming from DIR when it holds checkpoints) and evaluates, or with
-``--mode=eval`` scores the latest checkpoint in DIR. Any config field can be set with
-``--config.section.field=value``; ``--nofigures`` skips the pictures written after training.
-``configs/NAME.py`` is the package's bundled config when the working directory has no such
-file. Errors in the input print as one line ``error: ...`` (exit status 2); ``--verbose``
-logs the resolved config and the loop's periodic metrics, and keeps tracebacks.
+  c3dpo-train --config=configs/synthetic.py --workdir=runs/synthetic     # built-in data
+  c3dpo-train --config=configs/own_json.py --workdir=runs/mine \
+      --config.data.train_path=A_train.json --config.data.test_path=A_test.json \
+      --config.model.n_keypoints=K                                        # your keypoints
+
+Trains (resuming from DIR when it holds checkpoints) and evaluates, or with --mode=eval
+scores the latest checkpoint in DIR. Any config field can be set with
+--config.section.field=value; --nofigures skips the pictures written after training.
+configs/NAME.py is the package's bundled config when the working directory has no such
+file. Errors in the input print as one line "error: ..." (exit status 2); --verbose logs
+the resolved config and the loop's periodic metrics, and keeps tracebacks.
 """
 
 import sys

@@ -101,7 +101,7 @@ def test_the_installed_package_trains_predicts_and_runs_the_notebook_from_elsewh
     train = _run([str(venv / "bin" / "c3dpo-train"), "--config=configs/synthetic.py:smoke",
                   "--workdir=run"], tmp_path, env)
     assert f"{venv}" in train.stdout.splitlines()[0]  # the bundled config
-    for script, start in (("c3dpo-train", "Command line: ``c3dpo-train --config="),
+    for script, start in (("c3dpo-train", "Command line: trains C3DPO and scores it"),
                           ("c3dpo-predict", "Command line: 2D keypoints in a file")):
         usage = subprocess.run([str(venv / "bin" / script), "--help"], cwd=tmp_path, env=env,
                                capture_output=True, text=True, timeout=300)
