@@ -59,6 +59,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     assert all(c != "-" and "nan" not in c for c in cells)  # the run reports "mirrored" too
     assert 0.0 <= float(cells[10]) <= 1.0
     assert (out / "lr.md").read_text().count("| cmu131 |") == 1
+    assert "Made by `python experiments/dev_suite/suite.py " in (out / "lr.md").read_text()
     # The variant's file keeps every finished run when the table asked for has fewer.
     report = [*cmd[:-1], "--seeds=7", "--report_only", "--variant=lr:optim.lr=0.001"]
     proc = subprocess.run([c for c in report if c != "--seeds=0"], check=True,

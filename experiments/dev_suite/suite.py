@@ -363,6 +363,22 @@ def finished(out: str, variant: str) -> tuple[list[str], list[str]]:
     return datasets, sorted({s for _, _, s in names}, key=int)
 
 
+def provenance() -> str:
+    """How a table was made: the command, this machine's CPU and the software."""
+    import platform
+
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    if os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo") as f:
+            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+        cpu = names[0] if names else cpu
+    command = " ".join(["python experiments/dev_suite/suite.py", *sys.argv[1:]])
+    return (f"Made by `{command}` on {os.cpu_count()} cores of {cpu}, jax {jax.__version__}, "
+            f"{FLAGS.jobs} runs at a time, one core each.")
+
+
 def main(argv):
     del argv
     variants = [parse_variant(v) for v in FLAGS.variant] or [("default", [])]
@@ -388,10 +404,17 @@ def main(argv):
         run_all(jobs, FLAGS.jobs, FLAGS.out)
     for name, overrides in variants:
         header = f"### {name}" + (f" ({', '.join(overrides)})" if overrides else "")
-        # The file holds every finished run of the variant, not only those asked for now,
-        # so that a run on a few datasets or seeds does not shrink the variant's table.
-        with open(os.path.join(FLAGS.out, f"{name}.md"), "w") as f:
-            f.write(header + "\n\n" + table(FLAGS.out, name, *finished(FLAGS.out, name)) + "\n")
+        if not os.path.isdir(os.path.join(FLAGS.out, "runs", name)):
+            print(f"\n{header}: no runs under {os.path.join(FLAGS.out, 'runs', name)}")
+            continue
+        if not FLAGS.report_only:
+            # The file holds every finished run of the variant, not only those asked for now,
+            # so that a run on a few datasets or seeds does not shrink the variant's table;
+            # --report_only prints and writes nothing (a variant named without its overrides
+            # would lose them from the file's header).
+            with open(os.path.join(FLAGS.out, f"{name}.md"), "w") as f:
+                f.write(f"{header}\n\n{provenance()}\n\n"
+                        + table(FLAGS.out, name, *finished(FLAGS.out, name)) + "\n")
         print(f"\n{header}\n\n{table(FLAGS.out, name, FLAGS.datasets, FLAGS.seeds)}")
     missing = [w for w in glob.glob(os.path.join(FLAGS.out, "runs", "*", "*"))
                if not is_finished(w)]
