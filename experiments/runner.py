@@ -39,6 +39,19 @@ def run_main(main) -> None:
     app.run(guarded)
 
 
+def check_steps(workdir: str, steps: int) -> None:
+    """Refuses, in one line, to reuse a finished run in ``workdir`` that was trained for
+    another number of steps than ``steps`` (its table would be labelled with the new one)."""
+    path = os.path.join(workdir, "config.json")
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        saved = json.load(f).get("train", {}).get("num_steps")
+    if saved and saved != steps:
+        raise ValueError(f"{workdir} holds a run of {saved} steps, not {steps}: give another "
+                         "output folder, or the same steps")
+
+
 def is_finished(workdir: str) -> bool:
     """Whether the run in ``workdir`` has made its final evaluation."""
     path = os.path.join(workdir, "eval_results.json")

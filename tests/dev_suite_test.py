@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SUITE = os.path.join(ROOT, "experiments", "dev_suite", "suite.py")
@@ -162,6 +163,22 @@ def test_recorded_data_paths_are_relative_to_the_repository_inside_it_only(tmp_p
         assert runner.repo_path(outside) == outside
 
 
+def test_a_finished_run_of_other_steps_is_not_reused_and_jobs_are_checked(tmp_path,
+                                                                        monkeypatch):
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "experiments"))
+    import runner
+
+    run = tmp_path / "cell"
+    runner.check_steps(str(run), 40)  # nothing there yet
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"train": {"num_steps": 20}}))
+    runner.check_steps(str(run), 20)
+    with pytest.raises(ValueError, match=r"cell holds a run of 20 steps, not 40"):
+        runner.check_steps(str(run), 40)
+    with pytest.raises(ValueError, match=r"--jobs=0 \(must be >= 1\)"):
+        runner.run_all([(str(run), ["true"])], 0, str(tmp_path))
+
+
 def test_analysis_helpers_on_shapes_with_known_answers():
     """analyse.deformation_spread is 0 for rotated, mirrored, scaled, shifted copies of one
     shape and positive for deformed ones; sign_aligned_mean undoes per-view depth flips;
@@ -170,6 +187,7 @@ def test_analysis_helpers_on_shapes_with_known_answers():
     aligning deformed shapes leaves), not with 1."""
     code = """
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 rng = np.random.default_rng(3)
 base, mode = rng.normal(size=(10, 3)), rng.normal(size=(10, 3))
@@ -204,6 +222,7 @@ def test_span_fit_and_2d_refit_recover_shapes_in_the_span():
     answer, converges to it from the 2D points alone (a hidden point changes nothing)."""
     code = """
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 rng = np.random.default_rng(5)
 base, mode = rng.normal(size=(10, 3)), rng.normal(size=(10, 3))
@@ -238,6 +257,7 @@ def test_bone_directions_count_and_undo_bones_turned_in_depth():
     views, and its oracle undoes exactly those turns."""
     code = """
 import numpy as np
+import pytest
 rng = np.random.default_rng(7)
 parents = analyse.PARENTS['deepmimic']
 m, n = 40, len(parents)
@@ -282,6 +302,7 @@ def test_relift_prefers_the_shapes_a_lifter_sees_from_every_side():
     single turn undoes those turns, as the oracle does."""
     code = """
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from c3dpo_jax import baselines
 rng = np.random.default_rng(3)

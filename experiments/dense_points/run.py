@@ -29,14 +29,14 @@ import subprocess
 import sys
 
 import numpy as np
-from absl import app, flags
+from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, run_all  # noqa: E402
+from runner import check_steps, is_finished, run_all, run_main  # noqa: E402
 
 N_JOINTS = 17
 
@@ -179,8 +179,11 @@ def main(argv):
     out = fl.dense_out
     cost_counts = [int(k) for k in fl.cost_counts]
     counts, seeds = [int(k) for k in fl.counts], [int(s) for s in fl.seeds]
+    for k in counts:
+        for s in seeds:
+            check_steps(os.path.join(out, "runs", run_name(k, s)), fl.steps)
     if min(cost_counts + counts) < N_JOINTS:
-        raise app.UsageError(f"keypoint counts start at the {N_JOINTS} joints")
+        raise ValueError(f"keypoint counts start at the {N_JOINTS} joints")
     if fl.part == "cost":
         run_cost(out, cost_counts)
     elif fl.part == "accuracy":
@@ -207,4 +210,4 @@ def _define_flags() -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    app.run(main)
+    run_main(main)

@@ -33,7 +33,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, repo_path, run_all, run_main  # noqa: E402
+from runner import check_steps, is_finished, repo_path, run_all, run_main  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("sigmas", ["0", "0.05", "0.1"], "2D noise std, in median RMS radii")
@@ -251,6 +251,7 @@ def main(argv):
         for seed in seeds:
             for dense, sigma, p in sorted(grid, key=lambda g: -g[0]):  # the slowest first
                 workdir = os.path.join(out, "runs", cell_name(dense, sigma, p, seed))
+                check_steps(workdir, FLAGS.steps)
                 if not is_finished(workdir):
                     cell = make_cell(dense, sigma, p, out, seed)
                     jobs.append((workdir, command(cell, workdir, seed)))
