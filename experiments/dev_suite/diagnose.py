@@ -4,10 +4,10 @@ Trains one suite dataset with the library's loop (``train.train_and_evaluate``) 
 every evaluation (``train.Hooks.after_evaluation``), measures on the training views (a fixed
 subset) and on the test views::
 
-  python experiments/dev_suite/diagnose.py --dataset=deepmimic --out=/tmp/diag
+  python experiments/dev_suite/diagnose.py --dataset=deepmimic --diag_out=/tmp/diag
   python experiments/dev_suite/diagnose.py --dataset=deepmimic --set=loss.w_canonicalization=10
 
-Written to ``OUT/diagnostics.jsonl``, one record per evaluation and split:
+Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
 
 - ``mpjpe`` (best of the prediction and its depth flip, per view), ``mpjpe_orig``;
   ``sign_agreement``: the fraction of views whose better one is the unflipped prediction
