@@ -209,9 +209,10 @@ def test_the_pictures_find_the_data_files_from_any_directory(tmp_path, monkeypat
 
 def test_a_finished_run_extended_keeps_its_final_evaluation_on_the_curve(tmp_path):
     workdir = str(tmp_path / "run")
-    first = train.train_and_evaluate(_config(**{"train.eval_every_steps": 4}), workdir)
-    assert [h["step"] for h in first["history"]] == [4, 8] and first["final"]["step"] == 10
-    longer = _config(**{"train.eval_every_steps": 4, "train.num_steps": 16})
+    # Evaluations every 5 steps, as the logging: one compiled chunk length (5) for both runs.
+    first = train.train_and_evaluate(_config(**{"train.eval_every_steps": 5}), workdir)
+    assert [h["step"] for h in first["history"]] == [5] and first["final"]["step"] == 10
+    longer = _config(**{"train.eval_every_steps": 5, "train.num_steps": 20})
     results = train.train_and_evaluate(longer, workdir)
-    assert [h["step"] for h in results["history"]] == [4, 8, 10, 12]
-    assert results["history"][2] == first["final"] and results["final"]["step"] == 16
+    assert [h["step"] for h in results["history"]] == [5, 10, 15]
+    assert results["history"][1] == first["final"] and results["final"]["step"] == 20
