@@ -18,6 +18,7 @@ import ast
 import importlib.util
 import logging as py_logging
 import os
+import re
 import signal
 import sys
 from collections.abc import Callable
@@ -166,6 +167,10 @@ def error_message(err: BaseException) -> str:
         return "no config field " + "; ".join(str(err.args[0].args[0]).splitlines())
     if isinstance(err, KeyError):
         return f"missing key {text}"
+    missing = re.findall(r"Flag (--\w+) must have a value other than None", text)
+    if missing:  # absl names each required flag not given on a line of its own
+        return (f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} required "
+                "(--help shows the flags and an example)")
     return text
 
 

@@ -133,6 +133,11 @@ def test_error_messages_are_one_line():
         "call last):\n  File \"c.py\", line 1\nValueError: unknown config variant(s) ['smok']\n")
     assert cli.error_message(wrapped) == (
         "flag --config=c.py:smok: ValueError: unknown config variant(s) ['smok']")
+    required = flags.IllegalFlagValueError(
+        "flag --config=None: Flag --config must have a value other than None.\nflag "
+        "--workdir=None: Flag --workdir must have a value other than None.")
+    assert cli.error_message(required) == ("--config, --workdir are required (--help shows the "
+                                           "flags and an example)")
 
 
 def test_log_filter_keeps_own_info_and_drops_library_chatter_and_hidden_lines():
