@@ -467,8 +467,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
                         if hooks.after_evaluation is not None:
                             hooks.after_evaluation(history[-1], state)
                     tic = time.perf_counter()
-                if stopping:
-                    logging.info("stopped early at step %d of %d", step, total)
+                if stopping:  # said after the bar is closed, not drawn around it
                     break
         writer.flush()
     except BaseException:  # a diverged loss (FloatingPointError), a hook's exception, Ctrl-C
@@ -476,6 +475,8 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         raise
     train_s += time.perf_counter() - tic
     close()
+    if step < total and signals.received is None:  # a hook's stop (a signal's: Interrupted)
+        logging.info("stopped early at step %d of %d", step, total)
     if signals.received is not None:
         name = signal.Signals(signals.received).name
         raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
