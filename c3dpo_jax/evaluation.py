@@ -160,9 +160,11 @@ def mirrored_fraction(shape_canonical: np.ndarray, max_samples: int = 5000) -> f
     return float(np.mean(fit(x * np.array([1.0, 1.0, -1.0])) < fit(x)))
 
 
-def format_table(
-    rows: dict[str, dict], keys=("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
-) -> str:
+# The scores a results table shows, in its column order.
+TABLE_KEYS = ("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
+
+
+def format_table(rows: dict[str, dict], keys=TABLE_KEYS) -> str:
     """Plain-text table: one row per method, one column per metric ("-" where absent).
 
     Four decimals, or four significant digits in exponent form for values that four

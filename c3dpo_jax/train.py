@@ -45,6 +45,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from c3dpo_jax import (
     checkpoint,
     device_data,
+    evaluation,
     model,
     run_records,
     validation,
@@ -136,8 +137,7 @@ def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
 
 def _scores(record: dict) -> str:
     """An evaluation's scores in one short line (all of them: eval_results.json)."""
-    keys = ("mpjpe", "mpjpe_orig", "stress", "reprojection", "mirrored")
-    return ", ".join(f"{k} {record[k]:.4g}" for k in keys if k in record)
+    return ", ".join(f"{k} {record[k]:.4g}" for k in evaluation.TABLE_KEYS if k in record)
 
 
 def _next_stop(step: int, total: int, intervals) -> int:

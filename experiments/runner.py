@@ -20,6 +20,20 @@ def repo_path(path: str) -> str:
     return path if rel == ".." or rel.startswith(".." + os.sep) else rel
 
 
+def cpu_model() -> str:
+    """This machine's CPU model (lscpu's "Model name"), for the records of how a result was
+    made."""
+    import platform
+
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return platform.processor()
+    names = [line.split(":", 1)[1].strip() for line in out.splitlines()
+             if line.startswith("Model name")]
+    return names[0] if names else platform.processor()
+
+
 def run_main(main) -> None:
     """``app.run(main)`` with an error in the input (a flag's value, a missing file) as one
     line ``error: ...`` and exit status 2, as the library's commands print them; absl's

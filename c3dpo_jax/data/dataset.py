@@ -140,7 +140,7 @@ def check_spread(data: KeypointData, split: str) -> None:
     # visibilities (equal views give equal numbers; others, almost surely not), ~100x faster
     # than comparing whole rows.
     rng = np.random.default_rng(0)
-    seen = np.where(data.vis[..., None] > 0, data.kp, np.float32(0))
+    seen = np.where(vis, data.kp, np.float32(0))
     key = (np.einsum("mnc,nc->m", seen, rng.normal(size=seen.shape[1:]))
            + data.vis @ rng.normal(size=data.n_keypoints))
     distinct = len(np.unique(key))

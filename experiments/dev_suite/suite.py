@@ -60,7 +60,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import is_finished, repo_path, run_all, run_main  # noqa: E402
+from runner import cpu_model, is_finished, repo_path, run_all, run_main  # noqa: E402
 
 NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
@@ -365,17 +365,11 @@ def finished(out: str, variant: str) -> tuple[list[str], list[str]]:
 
 def provenance() -> str:
     """How a table was made: the command, this machine's CPU and the software."""
-    import platform
-
     import jax
 
-    cpu = platform.processor() or platform.machine()
-    if os.path.exists("/proc/cpuinfo"):
-        with open("/proc/cpuinfo") as f:
-            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
-        cpu = names[0] if names else cpu
     command = " ".join(["python experiments/dev_suite/suite.py", *sys.argv[1:]])
-    return (f"Made by `{command}` on {os.cpu_count()} cores of {cpu}, jax {jax.__version__}, "
+    return (f"Made by `{command}` on {os.cpu_count()} cores of {cpu_model()}, jax "
+            f"{jax.__version__}, "
             f"{FLAGS.jobs} runs at a time, one core each.")
 
 

@@ -19,7 +19,6 @@ other in this process).
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -32,8 +31,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, HERE)
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
 import consistency  # noqa: E402
+from runner import cpu_model  # noqa: E402
 
 # label, config spec, workdir name
 MODELS = (("C3DPO", "configs/humans.py", "full"),
@@ -212,16 +213,6 @@ def write_figure(results: dict, canonical_shapes: dict, angles_deg: np.ndarray,
                                        skeletons.skeleton("h36m", n),
                                        np.asarray(results["reference"]["curve"]))
     save_figure(fig, path)
-
-
-def cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return platform.processor()
-    names = [line.split(":", 1)[1].strip() for line in out.splitlines()
-             if line.startswith("Model name")]
-    return names[0] if names else platform.processor()
 
 
 def main(argv):
