@@ -18,7 +18,7 @@ import sys
 from absl import flags, logging
 from ml_collections import config_flags
 
-from c3dpo_jax import cli, evaluation, train, validation
+from c3dpo_jax import cli, evaluation, run_records, train, validation
 
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "Config file FILE[:ARGS], e.g. configs/synthetic.py:smoke (configs/NAME.py: "
@@ -106,7 +106,7 @@ def main(argv):
         if _FIGURES.value:
             _write_figures(config, _WORKDIR.value)
     else:
-        results = train.evaluate_checkpoint(config, _WORKDIR.value)
+        results = train.evaluate_checkpoint(config, _WORKDIR.value, save=False)
     rows = {_method(config): results["final"], **results.get("baselines", {})}
     print(f"\nTest split ({results['final']['n_samples']} samples, protocol "
           f"'{config.data.protocol}'), step {results['final']['step']}:")
@@ -123,6 +123,9 @@ def main(argv):
         print("mirrored: the fraction of test views whose canonical shape has the other "
               "handedness than most (0: one for all; about 0.5: a coin toss per view, "
               "docs/data.md)")
+    if _MODE.value == "eval":  # after the table: a workdir it cannot write still shows it
+        sys.stdout.flush()
+        run_records.write_results(_WORKDIR.value, results)
     print(f"results written to {_WORKDIR.value}/eval_results.json")
     sys.stdout.flush()
 

@@ -60,7 +60,12 @@ class MetricsWriter:
 
 
 def write_results(workdir: str, results: dict) -> None:
-    checkpoint.write_json(os.path.join(workdir, "eval_results.json"), results, indent=2)
+    """Writes ``eval_results.json``; a workdir it cannot write is an OSError naming it."""
+    path = os.path.join(workdir, "eval_results.json")
+    try:
+        checkpoint.write_json(path, results, indent=2)
+    except OSError as err:
+        raise OSError(f"cannot write {path}: {err.strerror or err}") from err
 
 
 def read_results(workdir: str) -> dict:

@@ -522,10 +522,12 @@ def _inference_options(config, saved: dict | None) -> dict:
             if k.startswith("test_time_") and k in before and before[k] != v}
 
 
-def evaluate_checkpoint(config, workdir: str) -> dict:
+def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
 
-    Updates ``final`` and ``baselines`` of ``eval_results.json``; its training history stays,
+    Updates ``final`` and ``baselines`` of ``eval_results.json`` (``save=False``: returns
+    them without writing, as the command does until it has printed them, so that a
+    workdir it cannot write still shows its scores); its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
     (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
@@ -552,5 +554,6 @@ def evaluate_checkpoint(config, workdir: str) -> dict:
         final["inference"] = inference
     results = dict(before, final=final,
                    baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
-    run_records.write_results(workdir, results)
+    if save:
+        run_records.write_results(workdir, results)
     return results

@@ -60,6 +60,16 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert reevaluated["final"]["train_s"] == pytest.approx(results["final"]["train_s"], abs=0.5)
     assert [h["step"] for h in reevaluated["history"]] == [h["step"] for h in results["history"]]
     assert results["history"], "the smoke run evaluates at its epoch ends"
+    # A workdir it cannot write (here: the results' temporary name taken by a folder) still
+    # prints the scores, then says what it could not save.
+    os.mkdir(os.path.join(workdir, "eval_results.json.tmp"))
+    unwritable = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                          "--mode=eval")
+    assert unwritable.returncode == 2 and "Traceback" not in unwritable.stderr
+    assert "C3DPO" in unwritable.stdout and "results written" not in unwritable.stdout
+    assert unwritable.stderr.endswith(f"error: cannot write {workdir}/eval_results.json: "
+                                      "Is a directory\n"), unwritable.stderr[-500:]
+    os.rmdir(os.path.join(workdir, "eval_results.json.tmp"))
     # Scoring with a config of another network says so, instead of calling the checkpoints
     # unreadable.
     other = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
