@@ -190,16 +190,18 @@ def _parse_flags(argv: list[str]) -> list[str]:
         fail(err)
 
 
-def is_verbose(verbose: flags.FlagHolder) -> bool:
-    """``--verbose``, or absl's ``-v 1`` (debug logging)."""
-    return verbose.value or logging.get_verbosity() >= logging.DEBUG
+def is_verbose(verbose: flags.FlagHolder | None) -> bool:
+    """``--verbose`` (when the command has it), or absl's ``-v 1`` (debug logging)."""
+    return (verbose is not None and verbose.value) or logging.get_verbosity() >= logging.DEBUG
 
 
-def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder,
-        on_interrupt: str = "stopped") -> None:
-    """``app.run(main)`` as the package's commands run (module docstring). A Ctrl-C that
-    ``main`` does not handle itself ends with one line, ``interrupted: ON_INTERRUPT``, and
-    exit status 130 (``--verbose``: the traceback)."""
+def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder | None = None,
+        on_interrupt: str = "stopped", positional: bool = False) -> None:
+    """``app.run(main)`` as the package's commands (and the repository's experiments) run
+    (module docstring): an error in the input, including ``app.UsageError``, is one line; a
+    Ctrl-C that ``main`` does not handle itself ends with one line, ``interrupted:
+    ON_INTERRUPT``, and exit status 130 (``--verbose`` or ``-v 1``: the traceback).
+    Arguments that are not flags are refused unless ``positional`` (``main`` reads them)."""
     # --helpshort lists the flags of the file in argv[0]: a console script defines none; and
     # --help starts with __main__'s docstring, which a console script's wrapper lacks.
     for flag in flags.FLAGS.get_key_flags_for_module(main.__module__):
@@ -210,11 +212,11 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder,
 
     def guarded(argv):
         try:
-            if len(argv) > 1:  # e.g. "--config.x False": absl would leave "False" unread
+            if len(argv) > 1 and not positional:  # "--config.x False": absl leaves "False"
                 raise ValueError(f"unexpected argument(s) {' '.join(argv[1:])!r}: give every "
                                  "value with '=' (e.g. --config.model.canonicalization=False)")
             main(argv)
-        except USER_ERRORS as err:
+        except (app.UsageError, *USER_ERRORS) as err:
             if is_verbose(verbose):
                 raise
             fail(err)

@@ -34,23 +34,16 @@ def cpu_model() -> str:
     return names[0] if names else platform.processor()
 
 
-def run_main(main) -> None:
-    """``app.run(main)`` with an error in the input (a flag's value, a missing file) as one
-    line ``error: ...`` and exit status 2, as the library's commands print them; absl's
-    ``-v 1`` shows the traceback instead."""
-    from absl import app, logging
-
+def run_main(main, positional: bool = False) -> None:
+    """Runs an experiment's ``main`` as the library's commands run (``c3dpo_jax.cli.run``):
+    an error in the input (a flag's value, a missing file, ``app.UsageError``) as one line
+    ``error: ...`` with exit status 2, Ctrl-C as one line with status 130; absl's ``-v 1``
+    shows the traceback instead. ``positional``: ``main`` reads arguments that are not flags
+    (e.g. a sub-command)."""
     from c3dpo_jax import cli
 
-    def guarded(argv):
-        try:
-            main(argv)
-        except (app.UsageError, *cli.USER_ERRORS) as err:
-            if logging.get_verbosity() >= logging.DEBUG:
-                raise
-            cli.fail(err)
-
-    app.run(guarded)
+    cli.run(main, on_interrupt="what has finished is kept; the same command goes on from it",
+            positional=positional)
 
 
 def check_steps(workdir: str, steps: int) -> None:

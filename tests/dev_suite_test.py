@@ -179,6 +179,19 @@ def test_a_finished_run_of_other_steps_is_not_reused_and_jobs_are_checked(tmp_pa
         runner.run_all([(str(run), ["true"])], 0, str(tmp_path))
 
 
+@pytest.mark.parametrize("script, args, message", [
+    ("experiments/dev_suite/analyse.py", ["nonsense"], "error: usage: analyse.py floors | "),
+    ("experiments/emsfm/run.py", ["--n_iters=x"], "error: flag --n_iters=x: "),
+])
+def test_experiment_scripts_print_usage_errors_in_one_line(script, args, message):
+    """The analysis scripts run as the library's commands do (``runner.run_main``): a usage
+    error is one line and exit status 2, not absl's help page or a traceback."""
+    out = subprocess.run([sys.executable, script, *args], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 2 and out.stderr.startswith(message), out.stderr[-2000:]
+    assert out.stderr.count("\n") == 1 and not out.stdout
+
+
 def test_analysis_helpers_on_shapes_with_known_answers():
     """analyse.deformation_spread is 0 for rotated, mirrored, scaled, shifted copies of one
     shape and positive for deformed ones; sign_aligned_mean undoes per-view depth flips;

@@ -119,6 +119,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
 
 import suite  # noqa: E402
+from runner import run_main  # noqa: E402
 
 import c3dpo_jax  # noqa: E402
 import c3dpo_jax.cli  # noqa: E402
@@ -853,4 +854,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main, positional=True)

@@ -32,12 +32,13 @@ import sys
 
 import jax
 import numpy as np
-from absl import app, flags
+from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
 
 import suite  # noqa: E402
+from runner import run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -130,4 +131,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

@@ -16,12 +16,13 @@ import os
 import sys
 
 import jax
-from absl import app, flags
+from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
 
 import suite  # noqa: E402
+from runner import run_main  # noqa: E402
 
 from c3dpo_jax import train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -73,4 +74,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

@@ -22,9 +22,12 @@ import os
 import sys
 import time
 
-from absl import app, flags
+from absl import flags
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from runner import run_main  # noqa: E402
 
 from c3dpo_jax import baselines, emsfm, evaluation, nrsfm_metrics  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -101,4 +104,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

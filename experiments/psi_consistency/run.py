@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
 import consistency  # noqa: E402
-from runner import cpu_model  # noqa: E402
+from runner import cpu_model, run_main  # noqa: E402
 
 # label, config spec, workdir name
 MODELS = (("C3DPO", "configs/humans.py", "full"),
@@ -268,4 +268,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    run_main(main)

@@ -143,9 +143,11 @@ def main(argv):
 if __name__ == "__main__":
     # Flags only when run as a script, so that tests can import the functions above.
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import run  # run.py's flags: --dataset, --recipe, --set, --views_per_frame, ...
+    from runner import run_main
 
     flags.DEFINE_string("variables", None, "model variables written by run.py --save_variables")
     flags.DEFINE_float("noise_var", 1e-6, "isotropic noise variance of the learnt-basis refit")
     flags.DEFINE_string("json", "", "also write the figures here")
-    app.run(main)
+    run_main(main)
