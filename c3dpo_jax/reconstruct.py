@@ -284,6 +284,40 @@ def _count(name: str, value, least: int) -> int:
     return int(value)
 
 
+def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
+                      one_handedness) -> ModelConfig:
+    """``cfg`` with ``reconstruct``'s inference options (None: the model's own), each
+    checked against the model in one line."""
+    changes = {}
+    if turns is not None or turn_span is not None:
+        turns = _count("turns", cfg.test_time_turns if turns is None else turns, 1)
+        span = cfg.test_time_turn_span if turn_span is None else turn_span
+        if span not in model.TURN_SPANS:
+            raise ValueError(f"turn_span={span!r} (must be one of {model.TURN_SPANS}, or None)")
+        problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
+                                      cfg.z_augment_rot_angle, span)
+        if problem:
+            given = (f" with turn_span={span!r}" if turn_span is not None else
+                     f" with the model's turn_span {span!r} (pass turn_span= to choose another)")
+            problem = problem.replace("model.test_time_turn_span=", "turn_span=")
+            raise ValueError(f"turns={turns}{given} ({problem})")
+        changes.update(test_time_turns=turns, test_time_turn_span=span)
+    if refine_iters is not None:
+        refine_iters = _count("refine_iters", refine_iters, 0)
+        problem = model.refine_problem(refine_iters, cfg.projection_type)
+        if problem:
+            raise ValueError(f"refine_iters={refine_iters} ({problem})")
+        changes.update(test_time_refine_iters=refine_iters)
+    if one_handedness is not None:
+        if not isinstance(one_handedness, bool | np.bool_):
+            raise ValueError(f"one_handedness={one_handedness!r} (must be True, False or None)")
+        problem = model.handedness_problem(bool(one_handedness), cfg.projection_type)
+        if problem:
+            raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
+        changes.update(test_time_one_handedness=bool(one_handedness))
+    return dataclasses.replace(cfg, **changes) if changes else cfg
+
+
 def reconstruct(
     params: C3DPOParams,
     kp: ArrayLike | list,
@@ -327,38 +361,8 @@ def reconstruct(
       float16) array, so coordinates far from 0 keep their precision (an orthographic
       model lifts each view centred on its visible points, in float64).
     """
-    if turns is not None or turn_span is not None:
-        cfg = params.config
-        if turns is None:
-            turns = cfg.test_time_turns
-        turns = _count("turns", turns, 1)
-        span = cfg.test_time_turn_span if turn_span is None else turn_span
-        if span not in model.TURN_SPANS:
-            raise ValueError(f"turn_span={span!r} (must be one of {model.TURN_SPANS}, or None)")
-        problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
-                                      cfg.z_augment_rot_angle, span)
-        if problem:
-            given = (f" with turn_span={span!r}" if turn_span is not None else
-                     f" with the model's turn_span {span!r} (pass turn_span= to choose another)")
-            problem = problem.replace("model.test_time_turn_span=", "turn_span=")
-            raise ValueError(f"turns={turns}{given} ({problem})")
-        params = params.replace(config=dataclasses.replace(
-            cfg, test_time_turns=turns, test_time_turn_span=span))
-    if refine_iters is not None:
-        refine_iters = _count("refine_iters", refine_iters, 0)
-        problem = model.refine_problem(refine_iters, params.config.projection_type)
-        if problem:
-            raise ValueError(f"refine_iters={refine_iters} ({problem})")
-        params = params.replace(config=dataclasses.replace(
-            params.config, test_time_refine_iters=refine_iters))
-    if one_handedness is not None:
-        if not isinstance(one_handedness, bool | np.bool_):
-            raise ValueError(f"one_handedness={one_handedness!r} (must be True, False or None)")
-        problem = model.handedness_problem(bool(one_handedness), params.config.projection_type)
-        if problem:
-            raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
-        params = params.replace(config=dataclasses.replace(
-            params.config, test_time_one_handedness=bool(one_handedness)))
+    params = params.replace(config=_inference_config(params.config, turns, turn_span,
+                                                      refine_iters, one_handedness))
     precise = getattr(kp, "dtype", None) not in (np.float32, np.float16)  # lists: float64
     single, kp, offset, vis, K, class_mask = _check_inputs(params.config, kp, vis, K,
                                                            class_mask)
