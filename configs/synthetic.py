@@ -3,9 +3,9 @@
   python -m c3dpo_jax.main --config=configs/synthetic.py --workdir=runs/synthetic
 
 Low-rank non-rigid shapes (20 points, 3 deformation modes), cameras at any azimuth
-with elevation and roll within +-0.5 rad ("upright", like cameras around a standing
-person), orthographic views, 10% of points hidden at random; 5000 train / 1000 test
-views. Networks are narrower than the release's (256 wide, 3 residual blocks) and
+with elevation within +-0.5 rad and roll within +-0.25 rad ("upright", like cameras
+around a standing person), orthographic views, 10% of points hidden at random; 5000
+train / 1000 test views. Networks are narrower than the release's (256 wide, 3 residual blocks) and
 Adam (lr 3e-3, x0.1 after epoch 8) replaces SGD so that the run takes about two
 minutes on 2 CPU cores; the method (the three losses, Phi and Psi) is the paper's. At
 inference each view's camera and coefficients are refined from Phi's output, as for your

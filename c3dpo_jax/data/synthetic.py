@@ -94,7 +94,7 @@ def make_splits(
     """Train and test splits of one shape space; reproducible from ``seed``.
 
     ``cameras``: ``"uniform"`` (Haar-random rotations) or ``"upright"`` (any azimuth,
-    elevation and roll within ``max_elevation`` radians).
+    elevation within ``max_elevation`` radians and roll within half of it).
     """
     common = dict(
         n_keypoints=n_keypoints, n_modes=n_modes, deformation=deformation,
