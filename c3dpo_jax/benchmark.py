@@ -7,12 +7,13 @@ Glossary: B batch, N keypoints, D shape-basis size, S canonicalisation samples, 
 Measures, on random device-resident data of the config's shapes and through the
 same ``make_train_chunk`` path as training: compile time, train steps/s and
 samples/s (median over calls after warm-up, of ``--chunk_steps`` steps each, 1 by
-default; training runs 20-step chunks), eval samples/s (compiled ``make_eval_fn``, with the
-config's ``model.test_time_turns`` passes per sample and its ``test_time_refine_iters``
-refinement steps), the analytic dense-layer FLOPs of a
-step and the fraction of this machine's float32 matmul rate (``jnp.dot`` on the same shapes,
-measured in the same run) that the step achieves, and peak memory. Numbers are for
-reporting, never tests. With several devices
+default; training's chunks end at the next multiple of ``train.log_every``,
+``train.ckpt_every`` or the evaluation interval: at most 50 steps with configs/default.py,
+20 with configs/release.py), eval samples/s (compiled ``make_eval_fn``, with the config's
+``model.test_time_turns`` passes per sample and its ``test_time_refine_iters`` refinement
+steps), the analytic dense-layer FLOPs of a step and the fraction of this machine's float32
+matmul rate (``jnp.dot`` on the same shapes, measured in the same run) that the step
+achieves, and peak memory. Numbers are for reporting, never tests. With several devices
 (e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) the train step is data
 parallel over all of them, as in ``train.train_and_evaluate``.
 """
