@@ -28,8 +28,9 @@ def get_config(arg=None):
     # A 3x canonicalisation weight: with 1 these varied, self-occluding bodies factorise
     # degenerately (the test error rises from 0.117 to 0.18 while the losses fall), with 10
     # the model collapses to a rigid one (the rigid baseline's error); 3 keeps a non-rigid,
-    # view-consistent shape (0.100-0.106 over 10,000 steps; experiments/dev_suite). Not the
-    # general default: on the real sequences 3 is worse or fails (experiments/dev_suite).
+    # view-consistent shape (experiments/dev_suite; 0.111-0.115 after 10,000 steps with Phi's
+    # single pass, seeds 0-2: experiments/time_to_accuracy/results/humans__cpu__s*.json). Not
+    # the general default: on the real sequences 3 is worse or fails (experiments/dev_suite).
     c.loss.w_canonicalization = 3.0
     default.refined_inference(c)
     return default.apply_variants(c, arg)
