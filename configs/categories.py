@@ -7,8 +7,8 @@ Five classes (aeroplane 8, bottle 7, car 12, chair 10, diningtable 8 keypoints) 
 into one 45-keypoint layout with ``class_mask``; samples drawn class-balanced; the
 ``pascal3d`` protocol averages the error per class. CPU-sized networks and Adam. At
 inference each view's camera and coefficients are refined from Phi's output
-(``default.refined_inference``): test MPJPE 0.084 / 0.083 / 0.077 -> 0.080 / 0.081 / 0.074
-in seeds 0-2 (one pass: ``--config.model.test_time_refine_iters=0``).
+(``default.refined_inference``; its evidence is experiments/dev_suite's);
+``--config.model.test_time_refine_iters=0`` gives Phi's single pass.
 """
 
 from c3dpo_jax.data import categories
