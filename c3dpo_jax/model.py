@@ -41,8 +41,8 @@ class Prediction(Mapping):
 
     A frozen dataclass and a pytree (``vmap``, ``jit`` and ``device_get`` keep the type),
     and a read-only mapping from field name to array, so ``pred.alpha``,
-    ``pred["alpha"]``, ``pred.items()`` and ``dict(pred)`` all work (the mapping view is
-    the dict this type replaced). "Normalised" is the network's frame: the input
+    ``pred["alpha"]``, ``pred.items()`` and ``dict(pred)`` all work (the mapping view
+    serves code that reads the outputs as a dict). "Normalised" is the network's frame: the input
     centred (``kp_mean``) and times ``keypoint_rescale``, after calibration with K for
     perspective models.
 

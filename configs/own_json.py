@@ -21,13 +21,14 @@ Also not in the paper, at inference only: Phi's camera and shape coefficients fo
 view are the start of 20 Levenberg-Marquardt steps on the view's 2D reprojection error plus
 0.3 times the mean squared distance of the canonical shape's points to Phi's
 (``model.test_time_refine_iters``, ``model.test_time_refine_prior``). Against the median
-depth over 32 copies turned in-plane that this recipe used before: 7.7% lower test error on
-average over 27 runs of experiments/dev_suite not used to choose it, 25% on the nearly rigid
-face (whose regressed camera was what it lost against a rigid fit), 2% higher on CMU 131's
-17 joints (the section "Refining the regressed camera and coefficients at test time" there).
+depth over 32 copies turned in-plane (experiments/dev_suite's ``union32``): 7.7% lower test
+error on average over 27 runs of experiments/dev_suite not used to choose it (seeds 3-5),
+25% on the nearly rigid face (whose regressed camera was what it lost against a rigid
+fit), 2% higher on CMU 131's 17 joints (the section "Refining the regressed camera and
+coefficients at test time" there).
 ``--config.model.test_time_refine_iters=0`` gives Phi's own output (the release's single
 pass); with it, ``--config.model.test_time_turns=32
---config.model.test_time_turn_span=circle_and_range`` the turned copies used before.
+--config.model.test_time_turn_span=circle_and_range`` gives the 32 turned copies.
 """
 
 from configs import default

@@ -152,8 +152,8 @@ def score(workdir: str, make) -> dict:
 
 
 def rescore_rigid(workdir: str, dense: int, sigma: float, p: float, seed: int) -> None:
-    """Scores the rigid baseline of a scored run again (the baseline's code changed; the
-    model's score is kept: checkpoints are not kept)."""
+    """Scores the rigid baseline of a scored run again (views remade in memory), replacing
+    the one in its ``joints.json``; the model's score is kept (checkpoints are not kept)."""
     path = os.path.join(workdir, "joints.json")
     if not os.path.exists(path):
         return
