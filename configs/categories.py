@@ -1,7 +1,7 @@
 """Built-in synthetic object categories (a PASCAL3D+ analogue, data/categories.py).
 
   python -m c3dpo_jax.main --config=configs/categories.py --workdir=runs/categories
-  python -m c3dpo_jax.main --config=configs/categories.py:smoke --workdir=/tmp/cat_smoke
+  python -m c3dpo_jax.main --config=configs/categories.py:smoke --workdir=runs/categories_smoke
 
 Five classes (aeroplane 8, bottle 7, car 12, chair 10, diningtable 8 keypoints) packed
 into one 45-keypoint layout with ``class_mask``; samples drawn class-balanced; the

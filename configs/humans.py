@@ -1,7 +1,7 @@
 """Built-in synthetic humans (an S-Up3D analogue, data/humans.py): no download.
 
   python -m c3dpo_jax.main --config=configs/humans.py --workdir=runs/humans
-  python -m c3dpo_jax.main --config=configs/humans.py:smoke --workdir=/tmp/humans_smoke
+  python -m c3dpo_jax.main --config=configs/humans.py:smoke --workdir=runs/humans_smoke
 
 17 joints in Human3.6M order (plot with the ``h36m`` skeleton), 300 train / 50 test
 people and poses, each seen by 30 upright cameras (the paper's S-Up3D protocol),

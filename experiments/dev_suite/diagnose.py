@@ -4,7 +4,7 @@ Trains one suite dataset with the library's loop (``train.train_and_evaluate``) 
 every evaluation (``train.Hooks.after_evaluation``), measures on the training views (a fixed
 subset) and on the test views::
 
-  python experiments/dev_suite/diagnose.py --dataset=deepmimic --diag_out=/tmp/diag
+  python experiments/dev_suite/diagnose.py --dataset=deepmimic --diag_out=runs/diag_deepmimic
   python experiments/dev_suite/diagnose.py --dataset=deepmimic --set=loss.w_canonicalization=10
 
 Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
@@ -35,7 +35,8 @@ import numpy as np
 from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
+ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
+sys.path.insert(0, ROOT)
 
 import suite  # noqa: E402
 from runner import run_main  # noqa: E402
@@ -47,7 +48,8 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("dataset", "deepmimic", "a dataset of the suite")
 flags.DEFINE_integer("seed", 0, "training seed")
 flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE")
-flags.DEFINE_string("diag_out", "/tmp/c3dpo_diag", "workdir of the run")
+flags.DEFINE_string("diag_out", os.path.join(ROOT, "runs", "dev_suite_diag"),
+                    "workdir of the run")
 flags.DEFINE_integer("n_train_views", 3000, "training views measured")
 
 

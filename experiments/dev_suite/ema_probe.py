@@ -7,7 +7,7 @@ never feed back into training, so one run measures every ``tau`` against the sam
 curve. At each test evaluation every average is scored with the run's current BatchNorm
 statistics; one JSON record per evaluation goes to ``OUT/ema.jsonl``::
 
-  python experiments/dev_suite/ema_probe.py --dataset=humans --ema_out=/tmp/ema_humans
+  python experiments/dev_suite/ema_probe.py --dataset=humans --ema_out=runs/ema_humans
 """
 
 import json
@@ -19,7 +19,8 @@ import jax
 from absl import flags
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.normpath(os.path.join(HERE, "..", "..")))
+ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
+sys.path.insert(0, ROOT)
 
 import suite  # noqa: E402
 from runner import run_main  # noqa: E402
@@ -31,7 +32,8 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("dataset", "humans", "a dataset of the suite")
 flags.DEFINE_integer("seed", 0, "training seed")
 flags.DEFINE_list("taus", ["250", "1000", "2500"], "EMA time constants, in steps")
-flags.DEFINE_string("ema_out", "/tmp/c3dpo_ema", "workdir of the run")
+flags.DEFINE_string("ema_out", os.path.join(ROOT, "runs", "dev_suite_ema"),
+                    "workdir of the run")
 
 
 def main(argv):

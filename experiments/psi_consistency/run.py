@@ -8,7 +8,7 @@ changes with the view (``consistency.py``: the canonical spread, 0 = view-invari
 
   python experiments/psi_consistency/run.py                  # 10,000 steps per model
   python experiments/psi_consistency/run.py --seed=1         # -> results/seed1
-  python experiments/psi_consistency/run.py --num_steps=2000 --out=/tmp/psi
+  python experiments/psi_consistency/run.py --num_steps=2000 --out=runs/psi_2000
   python experiments/psi_consistency/run.py --smoke          # a tiny run in a temp dir
 
 Writes ``OUT/runs/{full,equiv}`` (the workdirs; a finished one is not trained again),

@@ -1,7 +1,7 @@
 """Where a trained model's 3D error comes from: camera, shape or the linear model itself.
 
-  python experiments/time_to_accuracy/run.py --dataset=face --save_variables=/tmp/face.msgpack
-  python experiments/time_to_accuracy/diagnose.py --dataset=face --variables=/tmp/face.msgpack
+  python experiments/time_to_accuracy/run.py --dataset=face --save_variables=runs/face.msgpack
+  python experiments/time_to_accuracy/diagnose.py --dataset=face --variables=runs/face.msgpack
 
 Takes run.py's data and recipe flags (``--dataset``, ``--recipe``, ``--set``, ...: give the
 ones the run had) and prints, as a table (and with ``--json=PATH`` as JSON), test MPJPE with

@@ -257,6 +257,7 @@ def run() -> dict:
     rate, compile_s = ((FLAGS.steps_per_s, FLAGS.compile_s) if replay
                        else rate_and_compile(workdir, results["final"]))
     if FLAGS.save_variables:
+        os.makedirs(os.path.dirname(os.path.abspath(FLAGS.save_variables)), exist_ok=True)
         with open(FLAGS.save_variables, "wb") as f:
             f.write(flax.serialization.msgpack_serialize(jax.device_get(load(workdir).variables)))
     return dict(
