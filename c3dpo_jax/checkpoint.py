@@ -82,6 +82,8 @@ def _checksum_problem(step_dir: str) -> str | None:
             recorded = json.load(f)
     except (OSError, ValueError):
         return f"its {CHECKSUM_FILE} is unreadable"
+    if not isinstance(recorded, dict):
+        return f"its {CHECKSUM_FILE} is unreadable (not a JSON object)"
     actual = _file_hashes(step_dir)
     for rel, digest in sorted(recorded.items()):
         if rel not in actual:
@@ -230,9 +232,24 @@ def _restore_newest(manager: ocp.CheckpointManager, template, subtree: bool = Fa
 
 def restore_or_init(manager: ocp.CheckpointManager, state):
     """The newest intact saved state if there is one (restored onto ``state``'s structure),
-    else ``state``."""
-    restored, _ = _restore_newest(manager, state)
-    return state if restored is None else restored
+    else ``state``. Newer steps that could not be read are moved aside (to
+    ``<step>.unreadable``, with a warning): the training that replays their steps saves
+    them again, which a step folder of the same name would refuse."""
+    restored, step = _restore_newest(manager, state)
+    if restored is None:
+        return state
+    newer = [s for s in manager.all_steps() if s > step]
+    for bad in newer:
+        source = os.path.join(str(manager.directory), str(bad))
+        target, n = source + ".unreadable", 1
+        while os.path.exists(target):
+            n += 1
+            target = f"{source}.unreadable{n}"
+        os.rename(source, target)
+        logging.warning("moved the unreadable checkpoint %s aside to %s", source, target)
+    if newer:
+        manager.reload()
+    return restored
 
 
 def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) -> bool:
@@ -311,6 +328,7 @@ def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
             ident[key] = config[key]
     if "train_data_sha256" in config:  # what was read, so a file edited in place counts
         ident["train_data_sha256"] = config["train_data_sha256"][:12]
+        ident["data"].pop("train_path", None)  # and the same file under another path does not
     if data.get("train_path"):  # the files win over the source (data.load_splits)
         ident["data"].pop("source", None)
     elif data.get("source") == "release":
@@ -338,10 +356,15 @@ def check_workdir(workdir: str, config: dict[str, Any]) -> None:
     """Refuses, in one line and before anything is written, to resume checkpoints made
     with another run identity (``_run_identity``) than ``config`` asks for. A workdir
     without checkpoints (e.g. left by a run that failed before its first one) may be
-    reused by any run; fields that only one of the two configs has are not compared."""
-    saved = load_config(workdir)
-    if saved is None or not has_checkpoint(workdir):
+    reused by any run; checkpoints without a ``config.json`` are refused (their run is
+    unknown); fields that only one of the two configs has are not compared."""
+    if not has_checkpoint(workdir):
         return
+    saved = load_config(workdir)
+    if saved is None:
+        raise ValueError(f"{workdir} holds checkpoints but no {CONFIG_FILE}, so which run they "
+                         f"belong to is unknown; put its {CONFIG_FILE} back, use a new "
+                         f"--workdir, or delete {os.path.join(workdir, CHECKPOINT_DIR)}")
     diffs = differences(_run_identity(saved), _run_identity(config))
     if diffs:
         more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""

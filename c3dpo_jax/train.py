@@ -495,22 +495,36 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     return results
 
 
+# Model fields that may differ between a run and its scoring (``--mode=eval``): how
+# inference is done, not what the network computes.
+_SCORING_OPTIONS = ("matmul_precision",)
+
+
 def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, template,
                         workdir: str) -> None:
-    """Refuses in one line to score a workdir's checkpoints with a config whose network
-    has other parameter shapes than the one its run trained (test-time options may
-    differ), naming the model fields that differ."""
+    """Refuses in one line to score a workdir's checkpoints with a config whose model
+    differs from the one its run trained (other parameter shapes, or other settings such as
+    the input scale, which would score another function of the same parameters), naming
+    the fields that differ; the inference options (``test_time_*``, ``matmul_precision``)
+    may differ."""
     if not saved or "model" not in saved:
         return
-    trained = model.variables_shape(model.ModelConfig.from_dict(saved["model"]))
-    if jax.tree.map(jnp.shape, trained) == jax.tree.map(jnp.shape, template):
-        return
+
+    def network(fields: dict) -> dict:
+        return {k: v for k, v in fields.items()
+                if not k.startswith("test_time_") and k not in _SCORING_OPTIONS}
+
     now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
-    diffs = checkpoint.differences({"model": saved["model"]}, {"model": now})
+    diffs = checkpoint.differences({"model": network(saved["model"])}, {"model": network(now)})
+    if not diffs:
+        return
+    trained = model.variables_shape(model.ModelConfig.from_dict(saved["model"]))
+    shaped = jax.tree.map(jnp.shape, trained) != jax.tree.map(jnp.shape, template)
     more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
-    detail = f" ({'; '.join(diffs[:3])}{more})" if diffs else ""
-    raise ValueError(f"{workdir} holds a network of another shape than the config's{detail}; "
-                     "evaluate it with the config it was trained with")
+    what = "of another shape than" if shaped else "trained with other model settings than"
+    raise ValueError(f"{workdir} holds a network {what} the config's ({'; '.join(diffs[:3])}"
+                     f"{more}); evaluate it with the config it was trained with (only "
+                     "model.test_time_* and model.matmul_precision may differ)")
 
 
 def _inference_options(config, saved: dict | None) -> dict:

@@ -59,14 +59,21 @@ def test_a_damaged_newest_checkpoint_is_skipped_for_the_previous_one(tmp_path, d
     assert step == 2 and int(state["n"]) == 2
     np.testing.assert_array_equal(state["w"], _weights(2))
     assert "checkpoint" in caplog.text and "/3 cannot be read" in caplog.text
-    manager = checkpoint.make_manager(str(tmp_path), save_every=1)
-    assert int(checkpoint.restore_or_init(manager, TEMPLATE)["n"]) == 2
-    manager.close()
     with pytest.raises(ValueError, match="checkpoint 3 .* cannot be read"):
         checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=3)
     with pytest.raises(FileNotFoundError,
                        match=r"no checkpoint 9 under .* \(its steps: \[1, 2, 3\]\)"):
         checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=9)
+    # Training resumes from step 2 and saves step 3 again: the damaged one is moved aside.
+    manager = checkpoint.make_manager(str(tmp_path), save_every=1)
+    assert int(checkpoint.restore_or_init(manager, TEMPLATE)["n"]) == 2
+    assert "moved the unreadable checkpoint" in caplog.text
+    checkpoint.save(manager, 3, {"w": _weights(3), "n": jnp.int32(3)})
+    manager.wait_until_finished()
+    manager.close()
+    assert sorted(os.listdir(ckpts)) == ["1", "2", "3", "3.unreadable"]
+    state, step = checkpoint.restore_latest(str(tmp_path), TEMPLATE)
+    assert step == 3 and int(state["n"]) == 3
 
 
 def test_non_finite_values_are_not_restored_and_no_intact_checkpoint_is_an_error(tmp_path):

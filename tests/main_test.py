@@ -77,7 +77,8 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert other.returncode == 2, other.stderr[-3000:]
     assert other.stderr.endswith("holds a network of another shape than the config's "
                                  "(model.shape_basis_size: 10 in the checkpoint's run, 5 now); "
-                                 "evaluate it with the config it was trained with\n")
+                                 "evaluate it with the config it was trained with (only "
+                                 "model.test_time_* and model.matmul_precision may differ)\n")
 
 
 def test_a_diverging_run_stops_with_one_line(tmp_path, run_main):

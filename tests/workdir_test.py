@@ -86,6 +86,28 @@ def test_fields_only_one_config_has_are_not_compared(tmp_path):
     checkpoint.check_workdir(workdir, newer)
 
 
+def test_checkpoints_without_their_config_are_refused(tmp_path):
+    workdir = _workdir(tmp_path, with_checkpoint=True)
+    os.remove(os.path.join(workdir, "config.json"))
+    with pytest.raises(ValueError, match="holds checkpoints but no config.json, so which run "
+                                         "they belong to is unknown"):
+        checkpoint.check_workdir(workdir, _config().to_dict())
+
+
+def test_the_same_training_data_under_another_path_is_the_same_run(tmp_path):
+    """The training data's fingerprint, not the path that named it, says what a run learnt
+    from: a moved data folder or a relative path for an absolute one resumes."""
+    workdir = str(tmp_path / "w")
+    os.makedirs(os.path.join(workdir, "checkpoints", "10"))
+    saved = dict(_config(**{"data.train_path": "/data/a_train.json"}).to_dict(),
+                 train_data_sha256="0123456789abcdef")
+    checkpoint.save_config(workdir, saved)
+    moved = dict(saved, data=dict(saved["data"], train_path="elsewhere/a_train.json"))
+    checkpoint.check_workdir(workdir, moved)
+    with pytest.raises(ValueError, match="train_data_sha256: '0123456789ab' in the checkpoint"):
+        checkpoint.check_workdir(workdir, dict(moved, train_data_sha256="fedcba9876543210"))
+
+
 def test_config_json_is_replaced_whole(tmp_path):
     checkpoint.save_config(str(tmp_path), {"a": 1})
     checkpoint.save_config(str(tmp_path), {"a": 2})
