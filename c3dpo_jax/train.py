@@ -302,6 +302,8 @@ class _StopSignals:
             return
         for sig, handler in self.previous.items():  # the usual behaviour, for this one too
             signal.signal(sig, handler)
+        if signum == signal.SIGINT:  # unwinds through the loop's clean-up (saves finished)
+            raise KeyboardInterrupt
         signal.raise_signal(signum)
 
     def __enter__(self):

@@ -251,3 +251,18 @@ def test_a_ctrl_c_outside_the_training_loop_ends_with_one_line():
     out = subprocess.run([sys.executable, "-c", script, "--verbose"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
     assert out.returncode != 0 and "Traceback" in out.stderr and "KeyboardInterrupt" in out.stderr
+    # A Ctrl-C that lands in a callback (here the garbage collector's, as JAX's can be)
+    # would be printed as "Exception ignored" and the command would go on; SIGTERM (e.g.
+    # `timeout`) ends with the same kind of line and its own status.
+    for body, status in (
+            ["gc.callbacks.append(lambda *a: signal.raise_signal(signal.SIGINT))",
+             "gc.collect()"], 130), (["os.kill(os.getpid(), signal.SIGTERM)", "time.sleep(30)"],
+                                     143):
+        lines = ["import gc, os, signal, time", "from absl import flags",
+                 "from c3dpo_jax import cli", "verbose = flags.DEFINE_bool('verbose', False, '')",
+                 "def main(argv):", *(f"    {line}" for line in body), "    print('went on')",
+                 "cli.run(main, verbose, on_interrupt='nothing was written')"]
+        out = subprocess.run([sys.executable, "-c", "\n".join(lines)], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == status and out.stdout == "", out
+        assert out.stderr == "interrupted: nothing was written\n", out
