@@ -86,7 +86,7 @@ def read_input(path: str) -> dict[str, np.ndarray]:
     # One visible point is enough to lift (reconstruct accepts it); training needs two.
     # Entries with none are skipped, as COCO annotations are; other faults are errors.
     data = json_dataset.parse(obj, name=os.path.basename(path).removesuffix(".json"),
-                              min_visible=0)
+                              min_visible=0, kp_dtype=np.float64)  # exact far from 0
     seen = data.vis.sum(1) > 0
     index = np.flatnonzero(seen)
     if not seen.all():
@@ -175,6 +175,9 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
         edges, y_up, unit = picture_style(workdir, inputs, skeleton, y_up)
     perspective = params.config.projection_type == "perspective"
     K = inputs.get("K") if perspective else None
+    if not perspective and inputs.get("K") is not None:
+        logging.warning("%s holds intrinsics (K); %s is an orthographic model, which ignores "
+                        "them", input_path, workdir)
     if perspective and K is None:
         raise ValueError(f"{workdir} is a perspective model: each input needs its intrinsics, "
                          "a 'K' field (3 x 3) in every entry of the release's JSON format "

@@ -117,6 +117,12 @@ MAX_NORMALISED_EXTENT = 1e4
 
 
 def _numeric(name: str, x, dtype=np.float32) -> np.ndarray:
+    if isinstance(x, jax.core.Tracer):
+        raise ValueError(f"{name} is a traced value: reconstruct runs on the host (it checks "
+                         "its input, then runs one compiled batch); under jax.jit, vmap or "
+                         "grad use inference.forward_batch or model.forward_eval")
+    if np.iscomplexobj(x):
+        raise ValueError(f"{name} is complex; keypoints are real coordinates")
     try:
         return np.asarray(x, dtype=dtype)
     except (TypeError, ValueError) as err:

@@ -101,7 +101,16 @@ def trim_metrics(workdir: str, step: int) -> None:
         return
     with open(path) as f:
         lines = [line for line in f if line.strip()]
-    keep = [line for line in lines if json.loads(line).get("step", 0) <= step]
+
+    def kept(line: str) -> bool:
+        try:
+            return json.loads(line).get("step", 0) <= step
+        except (ValueError, AttributeError):  # a line cut short by a kill mid-write
+            logging.warning("%s: dropped a line that is not a JSON record (%.40s...)", path,
+                            line.strip())
+            return False
+
+    keep = [line if line.endswith("\n") else line + "\n" for line in lines if kept(line)]
     if len(keep) < len(lines):
         with open(path, "w") as f:
             f.writelines(keep)

@@ -111,7 +111,25 @@ def test_release_json_entries_with_one_visible_point_are_lifted_and_none_skipped
     assert "1 of 3 entries have no visible point: skipped (entries [1])" in caplog.text
 
 
+def test_coordinates_far_from_zero_keep_their_precision_and_k_is_named(setup, tmp_path,
+                                                                         caplog):
+    """The release's JSON read for inference keeps float64 points (1e6 + x in float32 is
+    x to within 0.06), and intrinsics given to an orthographic model are said to be unused."""
+    _, params, workdir, data = setup
+    entries = [{"kp_loc": (data.kp[i].T.astype(np.float64) + 1e6).tolist(),
+                "kp_vis": data.vis[i].tolist(), "K": np.eye(3).tolist()} for i in range(3)]
+    path = tmp_path / "far.json"
+    path.write_text(json.dumps(entries))
+    with caplog.at_level("WARNING"):
+        got = predict.run(workdir, str(path), str(tmp_path / "far.npz"))
+    assert "holds intrinsics (K);" in caplog.text and "ignores them" in caplog.text
+    want = reconstruct(params, data.kp[:3], data.vis[:3])
+    np.testing.assert_allclose(got.shape_3d - [1e6, 1e6, 0], want.shape_3d, atol=1e-4)
+
+
 def test_coco_reader_rejects_malformed_keypoints():
+    with pytest.raises(ValueError, match=r"annotation 0: 'keypoints' is not a list of numbers"):
+        predict.read_coco({"annotations": [{"keypoints": "abc"}]})
     with pytest.raises(ValueError, match=r"\[x, y, v\] \* N"):
         predict.read_coco({"annotations": [{"keypoints": [1, 2]}]})
     with pytest.raises(ValueError, match=r"annotation 1 has 1 keypoints, most others 2 \(1 of"):

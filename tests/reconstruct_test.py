@@ -232,6 +232,14 @@ def test_bad_input_raises_a_clear_value_error(params, kp_shape, vis_shape, edit,
         reconstruct(params, kp, vis, K)
 
 
+def test_complex_and_traced_keypoints_are_refused_in_one_line(params):
+    kp, vis = np.ones((3, 7, 2)), np.ones((3, 7))
+    with pytest.raises(ValueError, match="kp is complex"):
+        reconstruct(params, kp + 1j, vis)
+    with pytest.raises(ValueError, match="kp is a traced value: reconstruct runs on the host"):
+        jax.jit(lambda k: reconstruct(params, k, vis).shape_3d)(kp)
+
+
 def test_class_mask_is_checked(params, caplog):
     kp, vis = _inputs(2)
     with pytest.raises(ValueError, match=r"^class_mask must contain only 0 and 1$"):

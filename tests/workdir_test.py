@@ -238,3 +238,16 @@ def test_a_finished_run_extended_keeps_its_final_evaluation_on_the_curve(tmp_pat
     results = train.train_and_evaluate(longer, workdir)
     assert [h["step"] for h in results["history"]] == [5, 10, 15]
     assert results["history"][1] == first["final"] and results["final"]["step"] == 20
+
+
+def test_a_metrics_line_cut_short_by_a_kill_does_not_block_the_resumption(tmp_path, caplog):
+    from c3dpo_jax import run_records
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"loss": 1.0, "step": 5}\n{"loss": 0.9, "step": 10}\n{"loss": 0.5, "st')
+    with caplog.at_level("WARNING"):
+        run_records.trim_metrics(str(tmp_path), 10)
+    assert path.read_text() == '{"loss": 1.0, "step": 5}\n{"loss": 0.9, "step": 10}\n'
+    assert "dropped a line that is not a JSON record" in caplog.text
+    run_records.trim_metrics(str(tmp_path), 5)
+    assert path.read_text() == '{"loss": 1.0, "step": 5}\n'

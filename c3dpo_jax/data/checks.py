@@ -68,18 +68,18 @@ def _null_as_nan(value):
     raise TypeError(type(value).__name__)
 
 
-def stack(entries, field: str, shape: tuple, problems: Problems, *, null: bool = False
-          ) -> np.ndarray:
-    """(M, *shape) float32; ragged, non-numeric (strings; null unless ``null``: then it
+def stack(entries, field: str, shape: tuple, problems: Problems, *, null: bool = False,
+          dtype=np.float32) -> np.ndarray:
+    """(M, *shape) of ``dtype``; ragged, non-numeric (strings; null unless ``null``: then it
     reads as NaN, which the caller's checks judge by point) or misshaped entries become
     problems (NaN)."""
     try:  # Fast path: one conversion for the whole file.
         arr = np.asarray([e[field] for e in entries])
         if arr.dtype.kind in _NUMBERS and arr.shape[1:] == shape:
-            return arr.astype(np.float32)
+            return arr.astype(dtype)
     except (ValueError, TypeError):
         pass
-    out = np.full((len(entries), *shape), np.nan, np.float32)
+    out = np.full((len(entries), *shape), np.nan, dtype)
     for i, e in enumerate(entries):
         try:
             value = np.asarray(_null_as_nan(e[field]) if null else e[field])

@@ -381,7 +381,11 @@ def read_coco(obj: dict, *, min_v: int = 1, min_visible: int = 1, category_id=No
             f"{', '.join(ids)})" if with_kp else ""))
     rows = []
     for i, ann in picked:
-        flat = np.asarray(ann["keypoints"], np.float32).reshape(-1)
+        try:
+            flat = np.asarray(ann["keypoints"], np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"annotation {i}: 'keypoints' is not a list of numbers, "
+                             "[x, y, v] * N") from None
         if flat.size == 0 or flat.size % 3:
             raise ValueError(f"annotation {i}: 'keypoints' has {flat.size} numbers; expected "
                              "one length 3K for all annotations, [x, y, v] * N")

@@ -119,7 +119,7 @@ def _info_fields(entries) -> dict:
 
 
 def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = False,
-          source: str = "") -> KeypointData:
+          source: str = "", kp_dtype=np.float32) -> KeypointData:
     """Parses and validates decoded JSON (a list, or the ``{"dataset", "data"}`` wrapper).
 
     Args:
@@ -128,6 +128,8 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
       min_visible: entries with fewer visible points are invalid.
       drop_invalid: drop invalid entries (logged with their count) instead of raising.
       source: what messages call the data (e.g. its file); default: ``dataset NAME``.
+      kp_dtype: the 2D points' dtype (float64 keeps coordinates far from 0 exact for
+        inference; training takes float32).
     Returns:
       the valid entries as ``KeypointData``.
     """
@@ -138,7 +140,8 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     ok = [e if i not in problems.by_entry else {"kp_loc": [[]], "kp_vis": []}
           for i, e in enumerate(entries)]
     n = checks.n_keypoints(ok, problems)
-    kp = np.swapaxes(checks.stack(ok, "kp_loc", (2, n), problems, null=True), 1, 2)
+    kp = np.swapaxes(checks.stack(ok, "kp_loc", (2, n), problems, null=True, dtype=kp_dtype),
+                     1, 2)
     vis = checks.stack(ok, "kp_vis", (n,), problems)
     checks.check_keypoints(kp, vis, min_visible, problems)
     fields = _optional_fields(ok, n, problems)
@@ -150,7 +153,7 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     kp, vis = kp[keep], vis[keep]
     if "bbox" in fields:
         vis = vis * _bbox_visibility(kp, fields.pop("bbox"))
-    kp = np.where(vis[..., None] > 0, kp, np.float32(0))
+    kp = np.where(vis[..., None] > 0, kp, kp.dtype.type(0))
     if "kp_loc_3d" in fields:
         fields["kp3d"] = fields.pop("kp_loc_3d")
     if "K" in fields:
