@@ -209,6 +209,20 @@ def _precision(cfg: ModelConfig):
     return jax.default_matmul_precision(cfg.matmul_precision)
 
 
+def single_precision(fn):
+    """Runs ``fn`` with JAX's 64-bit mode off: the library computes in float32 (parameters,
+    optimiser state, BatchNorm statistics), also in a notebook that has turned
+    ``jax_enable_x64`` on, where Python floats would otherwise enter as float64. For the
+    host entry points (``reconstruct``, ``train.train_and_evaluate``, ...)."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.enable_x64(False):
+            return fn(*args, **kwargs)
+
+    return wrapped
+
+
 def _under_precision(fn):
     """Runs ``fn(..., cfg)`` (``cfg`` its last argument) under ``_precision(cfg)``."""
 

@@ -324,6 +324,7 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
     return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
+@model.single_precision
 def reconstruct(
     params: C3DPOParams,
     kp: ArrayLike | list,

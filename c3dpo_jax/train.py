@@ -351,6 +351,7 @@ def _check_workdir_is_a_folder(workdir: str) -> None:
                          "missing)")
 
 
+@model.single_precision
 def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
 
@@ -538,6 +539,7 @@ def _inference_options(config, saved: dict | None) -> dict:
             if k.startswith("test_time_") and k in before and before[k] != v}
 
 
+@model.single_precision
 def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
 

@@ -232,6 +232,14 @@ def test_bad_input_raises_a_clear_value_error(params, kp_shape, vis_shape, edit,
         reconstruct(params, kp, vis, K)
 
 
+def test_a_notebook_with_64_bit_jax_gets_the_same_float32_reconstruction(params):
+    kp, vis = _inputs(3, n=7)
+    want = reconstruct(params, kp, vis, refine_iters=3)
+    with jax.enable_x64(True):  # jax_enable_x64, as scientific notebooks often set it
+        got = reconstruct(params, kp, vis, refine_iters=3)
+    np.testing.assert_array_equal(got.shape_3d, want.shape_3d)
+
+
 def test_complex_and_traced_keypoints_are_refused_in_one_line(params):
     kp, vis = np.ones((3, 7, 2)), np.ones((3, 7))
     with pytest.raises(ValueError, match="kp is complex"):
