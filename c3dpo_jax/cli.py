@@ -131,12 +131,20 @@ def get_config(spec: str):
     nothing reads.
     """
     path, _, arg = resolve_config(spec).partition(":")
-    use_configs_package(path)
-    name = os.path.splitext(os.path.basename(path))[0]
-    module_spec = importlib.util.spec_from_file_location(f"_c3dpo_config_{name}", path)
-    module = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(module)
-    config = module.get_config(arg or None)
+    # ``sys.modules``' ``configs`` entries are put back as they were: the config files
+    # import the package's ``configs``, and a notebook may have its own (a common name).
+    theirs = {n: m for n, m in sys.modules.items() if n == "configs" or n.startswith("configs.")}
+    try:
+        use_configs_package(path)
+        name = os.path.splitext(os.path.basename(path))[0]
+        module_spec = importlib.util.spec_from_file_location(f"_c3dpo_config_{name}", path)
+        module = importlib.util.module_from_spec(module_spec)
+        module_spec.loader.exec_module(module)
+        config = module.get_config(arg or None)
+    finally:
+        for n in [n for n in sys.modules if n == "configs" or n.startswith("configs.")]:
+            del sys.modules[n]
+        sys.modules.update(theirs)
     config.lock()
     return config
 

@@ -177,6 +177,41 @@ class ModelConfig:
     # accumulation), which XLA's CPU backend honours where the precision flag is ignored.
     matmul_precision: str = "default"
 
+    def __post_init__(self):
+        """The options that would otherwise change inference silently (an even number of
+        turns, an unknown span or projection, a negative prior), checked however the config
+        was made: ``validation.check_config`` says the same of a run's config, field by
+        field; this covers ``ModelConfig(...)``, ``dataclasses.replace`` and a hand-edited
+        config.json read by ``load``."""
+        problems = []
+        for name, known in (("projection_type", ("orthographic", "perspective")),
+                            ("keypoint_norm_type", ("to_mean", "to_root")),
+                            ("test_time_turn_span", TURN_SPANS)):
+            if getattr(self, name) not in known:
+                problems.append(f"{name}={getattr(self, name)!r} (known: {', '.join(known)})")
+        turns, iters, prior = (self.test_time_turns, self.test_time_refine_iters,
+                               self.test_time_refine_prior)
+        if not (isinstance(turns, int | np.integer) and turns >= 1):
+            problems.append(f"test_time_turns={turns!r} (must be an integer >= 1)")
+        elif self.test_time_turn_span in TURN_SPANS and self.projection_type in (
+                "orthographic", "perspective"):
+            why = turns_problem(int(turns), self.projection_type, self.z_augment,
+                                self.z_augment_rot_angle, self.test_time_turn_span)
+            if why:
+                problems.append(f"test_time_turns={turns} ({why})")
+        if not (isinstance(iters, int | np.integer) and iters >= 0):
+            problems.append(f"test_time_refine_iters={iters!r} (must be an integer >= 0)")
+        elif refine_problem(int(iters), self.projection_type):
+            problems.append(f"test_time_refine_iters={iters} "
+                            f"({refine_problem(int(iters), self.projection_type)})")
+        if not prior >= 0:  # NaN too
+            problems.append(f"test_time_refine_prior={prior!r} (must be >= 0)")
+        if handedness_problem(bool(self.test_time_one_handedness), self.projection_type):
+            problems.append("test_time_one_handedness=True ("
+                            + handedness_problem(True, self.projection_type) + ")")
+        if problems:
+            raise ValueError("model config: " + "; ".join(problems))
+
     @classmethod
     def from_dict(cls, d) -> "ModelConfig":
         """From a dict or ConfigDict; unknown keys are an error, not silently dropped.

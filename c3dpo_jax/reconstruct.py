@@ -121,14 +121,15 @@ def _numeric(name: str, x, dtype=np.float32) -> np.ndarray:
         raise ValueError(f"{name} is a traced value: reconstruct runs on the host (it checks "
                          "its input, then runs one compiled batch); under jax.jit, vmap or "
                          "grad use inference.forward_batch or model.forward_eval")
-    if np.iscomplexobj(x):
-        raise ValueError(f"{name} is complex; keypoints are real coordinates")
     try:
-        return np.asarray(x, dtype=dtype)
+        raw = np.asarray(x)
+        if not np.iscomplexobj(raw):
+            return raw.astype(dtype)
     except (TypeError, ValueError) as err:
         first = (str(err).splitlines() or [""])[0]
         raise ValueError(f"{name} is not a numeric array (a ragged or non-numeric list? "
                          f"{first})") from None
+    raise ValueError(f"{name} is complex; keypoints are real coordinates")
 
 
 def _as_batch(name: str, x, tail: tuple[int, ...], single: bool, finite: bool = True,

@@ -498,9 +498,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     return results
 
 
-# Model fields that may differ between a run and its scoring (``--mode=eval``): how
-# inference is done, not what the network computes.
-_SCORING_OPTIONS = ("matmul_precision",)
+# Model fields that may differ between a run and its scoring (``--mode=eval``): besides
+# the ``test_time_*`` options, how the matmuls are done and what only training reads.
+_SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_angle",
+                    "n_rand_samples", "canonicalization_rot_angle", "weight_init_std")
 
 
 def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, template,
@@ -509,7 +510,7 @@ def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, templa
     differs from the one its run trained (other parameter shapes, or other settings such as
     the input scale, which would score another function of the same parameters), naming
     the fields that differ; the inference options (``test_time_*``, ``matmul_precision``)
-    may differ."""
+    and the fields only training reads (``_SCORING_OPTIONS``) may differ."""
     if not saved or "model" not in saved:
         return
 
@@ -526,8 +527,7 @@ def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, templa
     more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
     what = "of another shape than" if shaped else "trained with other model settings than"
     raise ValueError(f"{workdir} holds a network {what} the config's ({'; '.join(diffs[:3])}"
-                     f"{more}); evaluate it with the config it was trained with (only "
-                     "model.test_time_* and model.matmul_precision may differ)")
+                     f"{more}); evaluate it with the config it was trained with")
 
 
 def _inference_options(config, saved: dict | None) -> dict:

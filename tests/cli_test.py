@@ -121,6 +121,16 @@ def test_get_config_gives_a_bundled_config_with_its_variant_from_any_directory(
     smoke.train.num_steps = 5
     with pytest.raises(AttributeError, match="num_stepz"):
         smoke.train.num_stepz = 5
+    # A notebook's own ``configs`` package is left as it was.
+    mine = tmp_path / "mine" / "configs"
+    mine.mkdir(parents=True)
+    (mine / "__init__.py").write_text("MINE = True\n")
+    (mine / "mything.py").write_text("VALUE = 3\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "mine"))
+    import configs.mything
+
+    cli.get_config("configs/synthetic.py:smoke")
+    assert sys.modules["configs"].MINE and sys.modules["configs.mything"] is configs.mything
 
 
 def test_error_messages_are_one_line():

@@ -60,6 +60,14 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert reevaluated["final"]["train_s"] == pytest.approx(results["final"]["train_s"], abs=0.5)
     assert [h["step"] for h in reevaluated["history"]] == [h["step"] for h in results["history"]]
     assert results["history"], "the smoke run evaluates at its epoch ends"
+    # Nor with other settings of the same shapes (another input scale scores another
+    # function of the same parameters).
+    rescaled = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                        "--mode=eval", "--config.model.keypoint_norm_type=to_root")
+    assert rescaled.returncode == 2 and rescaled.stderr.endswith(
+        "holds a network trained with other model settings than the config's "
+        "(model.keypoint_norm_type: 'to_mean' in the checkpoint's run, 'to_root' now); "
+        "evaluate it with the config it was trained with\n"), rescaled.stderr[-3000:]
     # A workdir it cannot write (here: the results' temporary name taken by a folder) still
     # prints the scores, then says what it could not save.
     os.mkdir(os.path.join(workdir, "eval_results.json.tmp"))
@@ -77,8 +85,7 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert other.returncode == 2, other.stderr[-3000:]
     assert other.stderr.endswith("holds a network of another shape than the config's "
                                  "(model.shape_basis_size: 10 in the checkpoint's run, 5 now); "
-                                 "evaluate it with the config it was trained with (only "
-                                 "model.test_time_* and model.matmul_precision may differ)\n")
+                                 "evaluate it with the config it was trained with\n")
 
 
 def test_a_diverging_run_stops_with_one_line(tmp_path, run_main):

@@ -429,3 +429,21 @@ def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_dep
         b = np.asarray(off["shape_camera"][i, :, 2])
         a, b = a - a.mean(), b - b.mean()
         assert np.allclose(a, b, atol=1e-5) or np.allclose(a, -b, atol=1e-5)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"test_time_turns": 4, "z_augment": True}, r"test_time_turns=4 \(must be an odd number"),
+    ({"test_time_turns": 0}, r"test_time_turns=0 \(must be an integer >= 1\)"),
+    ({"test_time_turn_span": "bogus"}, r"test_time_turn_span='bogus' \(known: augmentation"),
+    ({"projection_type": "Perspective"}, r"projection_type='Perspective' \(known:"),
+    ({"test_time_refine_iters": -1}, r"test_time_refine_iters=-1 \(must be an integer >= 0\)"),
+    ({"test_time_refine_prior": float("nan")}, r"test_time_refine_prior=nan \(must be >= 0\)"),
+    ({"projection_type": "perspective", "test_time_one_handedness": True},
+     r"test_time_one_handedness=True \(must be False for a perspective model"),
+])
+def test_a_model_config_that_would_change_inference_silently_is_refused(change, message):
+    """However it is made (``dataclasses.replace`` here, ``ModelConfig(...)``, a hand-edited
+    config.json read by ``load``): an even number of turns had used one copy less, an
+    unknown span the circle's, a negative prior Phi's output."""
+    with pytest.raises(ValueError, match="model config: " + message):
+        dataclasses.replace(model.ModelConfig(), **change)
