@@ -3,7 +3,8 @@
 Convention (stated once, used everywhere): rotations act on **column** vectors,
 ``x_cam = R @ x``. Points are stored as rows ``(N, 3)``, so a whole point set is
 rotated as ``X @ R.T``. ``exp_map(w)`` is the rotation by angle ``|w|`` about the
-axis ``w / |w|``, counter-clockwise when looking down the axis (right-hand rule),
+axis ``w / |w|``, counter-clockwise seen from the axis' tip (right-hand rule: the
+thumb along ``w``),
 i.e. ``exp_map(w) == expm(hat(w))`` as in the paper (``R(theta) = expm [theta]_x``).
 
 Paper: Sec. 3.3 (camera ``R = expm(hat(theta))``), Sec. 3.4 (random rotations for
@@ -48,11 +49,14 @@ def _sinc_sq(theta_sq: Float[Array, ""]) -> Float[Array, ""]:
     return jnp.where(small, series, jnp.sin(t) / t)
 
 
-def _check_shape(x, shape: tuple[int, ...], name: str, what: str) -> None:
-    """One ``what`` of ``shape``, else an error (batches go through ``jax.vmap``)."""
+def _check_shape(x, shape: tuple[int, ...], name: str, what: str):
+    """``x`` as a floating-point array (a list or integers too) when it is one ``what`` of
+    ``shape``, else an error (batches go through ``jax.vmap``)."""
     if jnp.shape(x) != shape:
         raise ValueError(f"{name} takes one {what} of shape {shape}, got {jnp.shape(x)} "
                          f"(for a batch: jax.vmap({name}))")
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
 
 
 def exp_map(w: Vec3) -> Rot:
@@ -64,7 +68,7 @@ def exp_map(w: Vec3) -> Rot:
     exact values and finite gradients at ``w = 0``. The release instead divides by
     ``t + 1e-4``, which is not orthonormal for small angles.
     """
-    _check_shape(w, (3,), "exp_map", "rotation vector")
+    w = _check_shape(w, (3,), "exp_map", "rotation vector")
     theta_sq = jnp.sum(w * w)
     a = _sinc_sq(theta_sq)
     b = 0.5 * _sinc_sq(theta_sq / 4.0) ** 2
@@ -79,7 +83,7 @@ def log_map(r: Rot) -> Vec3:
     everywhere, and near ``pi`` (where ``R - R^T`` vanishes) reads the axis from the
     largest column of ``(R + R^T)/2 + (1 - cos t) ... = I cos t + (1-cos t) a a^T``.
     """
-    _check_shape(r, (3, 3), "log_map", "rotation matrix")
+    r = _check_shape(r, (3, 3), "log_map", "rotation matrix")
     s = vee(r)
     # |s| with a finite gradient at the identity (that of a norm at 0 is NaN).
     sin_sq = jnp.sum(s * s)

@@ -248,8 +248,9 @@ class Hooks:
     evaluation, with the record appended to the history; ``should_stop(step, train_s)``,
     asked after every chunk with the training seconds so far: True ends training early
     (checkpoint and final evaluation at that step; running again resumes to the end);
-    ``should_evaluate(step, train_s)``, asked after every chunk: True evaluates the test
-    split there besides every ``eval_every`` steps (e.g. at times of a clock)."""
+    ``should_evaluate(step, train_s)``, asked after each chunk that ends before the last
+    step and at no ``eval_every`` evaluation: True evaluates the test split there too
+    (e.g. at times of a clock)."""
 
     after_chunk: Callable[[int, TrainState], None] | None = None
     after_evaluation: Callable[[dict, TrainState], None] | None = None

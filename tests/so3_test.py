@@ -108,6 +108,9 @@ def test_one_rotation_at_a_time_or_a_clear_error():
                        r"got \(5, 3\) \(for a batch: jax.vmap\(exp_map\)\)"):
         so3._check_shape(jnp.ones((5, 3)), (3,), "exp_map", "rotation vector")
     so3._check_shape(jnp.ones(3), (3,), "exp_map", "rotation vector")
+    # A list, or integers, is one too (in a notebook: exp_map([0.1, 0.2, 0.3])).
+    w = so3._check_shape([0, 1, 0], (3,), "exp_map", "rotation vector")
+    assert w.dtype == jnp.float32 and w.tolist() == [0.0, 1.0, 0.0]
     assert jax.vmap(so3.exp_map)(jnp.ones((5, 3))).shape == (5, 3, 3)
 
 
