@@ -21,9 +21,11 @@ without the record (a kill between the save and the record, or an older workdir)
 checked for readability and finite values only.
 """
 
+import contextlib
 import hashlib
 import importlib.metadata
 import json
+import logging as py_logging
 import os
 import platform
 import subprocess
@@ -57,6 +59,24 @@ def _file_hashes(step_dir: str) -> dict[str, str]:
                     h.update(block)
             out[rel] = h.hexdigest()
     return out
+
+
+class _NotOrbax(py_logging.Filter):
+    def filter(self, record):
+        return f"{os.sep}orbax{os.sep}" not in record.pathname
+
+
+@contextlib.contextmanager
+def _orbax_quiet():
+    """Drops orbax's own log records (its warnings about a damaged step's missing files,
+    several lines each) while steps are listed and read: ``_restore`` reports the damage in
+    one line. Also a decorator."""
+    logger, quiet = py_logging.getLogger("absl"), _NotOrbax()
+    logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        logger.removeFilter(quiet)
 
 
 def write_json(path: str, obj: Any, **dump_kw) -> None:
@@ -117,6 +137,7 @@ class _Manager(ocp.CheckpointManager):
         self._unsealed = []
 
 
+@_orbax_quiet()
 def make_manager(workdir: str, save_every: int, max_to_keep: int = 3) -> ocp.CheckpointManager:
     """The training run's manager. It first removes the ``<step>.orbax-checkpoint-tmp``
     folders that a killed run's uncommitted saves left (orbax never reads them)."""
@@ -175,6 +196,7 @@ def _network_shape_problem(step_dir: str, template) -> str | None:
     return f"{'; '.join(diffs[:2])}{more}"
 
 
+@_orbax_quiet()
 def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool = False):
     """The state saved at ``step`` (``_restore_args``), or None (with a warning naming it)
     when its files fail their checksums, cannot be read or hold non-finite numbers: a
@@ -183,6 +205,8 @@ def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool 
     file of the step, also when only a subtree is read."""
     step_dir = os.path.join(str(manager.directory), str(step))
     problem = _checksum_problem(step_dir)
+    if problem is None and not os.path.isdir(os.path.join(step_dir, "default")):
+        problem = "its saved state is missing: an empty or partly deleted step folder"
     if problem is not None:
         logging.warning("checkpoint %s/%d cannot be read (%s)", manager.directory, step, problem)
         return None
@@ -230,6 +254,7 @@ def _restore_newest(manager: ocp.CheckpointManager, template, subtree: bool = Fa
     return None, None
 
 
+@_orbax_quiet()
 def restore_or_init(manager: ocp.CheckpointManager, state):
     """The newest intact saved state if there is one (restored onto ``state``'s structure),
     else ``state``. Newer steps that could not be read are moved aside (to
@@ -388,6 +413,7 @@ def load_config(workdir: str) -> dict[str, Any] | None:
                              "which loading and resuming the run need") from None
 
 
+@_orbax_quiet()
 def restore_latest(workdir: str, template, step: int | None = None, subtree: bool = False):
     """Restores ``template``-shaped state from ``workdir``: ``step``, or by default the newest
     checkpoint that reads back intact. With ``subtree``, only the entries that ``template``

@@ -59,6 +59,10 @@ def test_a_damaged_newest_checkpoint_is_skipped_for_the_previous_one(tmp_path, d
     assert step == 2 and int(state["n"]) == 2
     np.testing.assert_array_equal(state["w"], _weights(2))
     assert "checkpoint" in caplog.text and "/3 cannot be read" in caplog.text
+    if damage in ("bare_step_folder", "item_folder_gone"):
+        assert "(its saved state is missing: an empty or partly deleted step folder)" in caplog.text
+    # In one line of its own: orbax's several about the missing files are not shown.
+    assert not [r for r in caplog.records if f"{os.sep}orbax{os.sep}" in r.pathname]
     with pytest.raises(ValueError, match="checkpoint 3 .* cannot be read"):
         checkpoint.restore_latest(str(tmp_path), TEMPLATE, step=3)
     with pytest.raises(FileNotFoundError,
