@@ -201,9 +201,8 @@ class ModelConfig:
                 problems.append(f"test_time_turns={turns} ({why})")
         if not (isinstance(iters, int | np.integer) and iters >= 0):
             problems.append(f"test_time_refine_iters={iters!r} (must be an integer >= 0)")
-        elif refine_problem(int(iters), self.projection_type):
-            problems.append(f"test_time_refine_iters={iters} "
-                            f"({refine_problem(int(iters), self.projection_type)})")
+        elif why := refine_problem(int(iters), self.projection_type):
+            problems.append(f"test_time_refine_iters={iters} ({why})")
         if not prior >= 0:  # NaN too
             problems.append(f"test_time_refine_prior={prior!r} (must be >= 0)")
         if handedness_problem(bool(self.test_time_one_handedness), self.projection_type):
