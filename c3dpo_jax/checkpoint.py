@@ -196,7 +196,6 @@ def _network_shape_problem(step_dir: str, template) -> str | None:
     return f"{'; '.join(diffs[:2])}{more}"
 
 
-@_orbax_quiet()
 def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool = False):
     """The state saved at ``step`` (``_restore_args``), or None (with a warning naming it)
     when its files fail their checksums, cannot be read or hold non-finite numbers: a

@@ -505,7 +505,7 @@ _SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_an
                     "n_rand_samples", "canonicalization_rot_angle", "weight_init_std")
 
 
-def _check_architecture(saved: dict | None, model_cfg: model.ModelConfig, template,
+def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
                         workdir: str) -> None:
     """Refuses in one line to score a workdir's checkpoints with a config whose model
     differs from the one its run trained (other parameter shapes, or other settings such as
@@ -559,7 +559,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
     template = model.variables_shape(model_cfg)
-    _check_architecture(saved, model_cfg, template, workdir)
+    _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
     _check_data(test_data, model_cfg, "test")
     final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,

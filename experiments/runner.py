@@ -46,6 +46,17 @@ def run_main(main, positional: bool = False) -> None:
             positional=positional)
 
 
+def literal(text: str):
+    """A ``KEY=VALUE`` override's value as the CLI reads it: a Python literal (``"1.5"`` ->
+    1.5, ``"(8,)"`` -> (8,)), else the string itself (``sgd``)."""
+    import ast
+
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
 def check_steps(workdir: str, steps: int) -> None:
     """Refuses, in one line, to reuse a finished run in ``workdir`` that was trained for
     another number of steps than ``steps`` (its table would be labelled with the new one)."""

@@ -25,7 +25,6 @@ Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
   deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
 """
 
-import ast
 import json
 import os
 import sys
@@ -39,7 +38,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 
 import suite  # noqa: E402
-from runner import run_main  # noqa: E402
+from runner import literal, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -51,14 +50,6 @@ flags.DEFINE_multi_string("set", [], "config overrides KEY=VALUE")
 flags.DEFINE_string("diag_out", os.path.join(ROOT, "runs", "dev_suite_diag"),
                     "workdir of the run")
 flags.DEFINE_integer("n_train_views", 3000, "training views measured")
-
-
-def _literal(text: str):
-    """``"1.5"`` -> 1.5, ``"(8,)"`` -> (8,); anything else stays a string."""
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        return text
 
 
 def _rms(x):
@@ -105,7 +96,7 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: floa
 def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
-    c.update_from_flattened_dict({k: _literal(v) for k, v in (i.split("=", 1) for i in FLAGS.set)})
+    c.update_from_flattened_dict({k: literal(v) for k, v in (i.split("=", 1) for i in FLAGS.set)})
     train_data = json_dataset.load(info["train"])
     test_data = json_dataset.load(info["test"])
     vpf = 30 if FLAGS.dataset == "humans" else (10 if FLAGS.dataset in suite.NRSFM else 3)

@@ -44,7 +44,6 @@ point of the evaluation curve; the worst seed's final / best ratio (1.0:
 no degradation) and the worst seed's baseline / final ratio (> 1: better than the baseline).
 """
 
-import ast
 import glob
 import json
 import math
@@ -60,7 +59,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import cpu_model, is_finished, repo_path, run_all, run_main  # noqa: E402
+from runner import cpu_model, is_finished, literal, repo_path, run_all, run_main  # noqa: E402
 
 NRSFM = ("drink", "face", "jaws", "pickup", "stretch", "yoga")
 # How the test frames are held out: "blocks" of every clip (unseen stretches of each motion)
@@ -109,14 +108,6 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     return name, overrides
 
 
-def _literal(text: str):
-    """An override's value as the CLI reads it: a Python literal, else the string."""
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        return text
-
-
 def _same(saved, asked) -> bool:
     """Whether a value of a run's config.json (JSON: tuples as lists) is the expected one."""
     if isinstance(saved, (list, tuple)) and isinstance(asked, (list, tuple)):
@@ -161,7 +152,7 @@ def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
                    "train.eval_every_steps": FLAGS.eval_every_steps})
     for item in overrides:
         key, _, text = item.partition("=")
-        config[key] = _literal(text)
+        config[key] = literal(text)
     for key in ("data.train_path", "data.test_path"):
         config.pop(key, None)
     if config.get("model.keypoint_rescale") == 0:  # resolved from the training data

@@ -13,7 +13,6 @@ every view (``model.test_time_one_handedness=True``). The table goes to
 ``--synthetic_out``/synthetic.md, with the command, the CPU and the jax version.
 """
 
-import ast
 import json
 import os
 import sys
@@ -26,7 +25,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import cpu_model, is_finished, run_all, run_main  # noqa: E402
+from runner import cpu_model, is_finished, literal, run_all, run_main  # noqa: E402
 
 # Row name -> the config's variant (configs/default.py's apply_variants).
 METHODS = {"C3DPO": "", "C3DPO-equiv": "equiv", "C3DPO-base": "base"}
@@ -57,10 +56,7 @@ def _overrides(extra: list[str]) -> dict:
     for flag in extra:
         key, _, value = flag.partition("=")
         if key.startswith("--config."):
-            try:
-                out[key[len("--config."):]] = ast.literal_eval(value)
-            except (ValueError, SyntaxError):
-                out[key[len("--config."):]] = value
+            out[key[len("--config."):]] = literal(value)
     return out
 
 

@@ -36,7 +36,6 @@ the seed, so replayed runs can share the machine (e.g. two at once, one core eac
 changing their results.
 """
 
-import ast
 import json
 import math
 import os
@@ -50,7 +49,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # for ``runne
 import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from runner import repo_path, run_main  # noqa: E402
+from runner import literal, repo_path, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, load, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
@@ -165,10 +164,7 @@ def _override(c, items, prefix: str = ""):
         node = c
         for p in parents:
             node = node[p]
-        try:
-            value = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            pass  # a plain string, e.g. optim.optimizer=sgd
+        value = literal(value)  # a plain string stays one, e.g. optim.optimizer=sgd
         old = node[leaf]
         node[leaf] = float(value) if isinstance(old, float) else value
     return c
