@@ -17,12 +17,13 @@ TINY = [
 ]
 
 
-def test_benchmark_cli_writes_sane_json(tmp_path):
+def test_benchmark_cli_writes_sane_json(tmp_path, smoke_subprocess_env):
     out = tmp_path / "bench.json"
     cmd = [sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/default.py", *TINY,
            "--steps=2", "--chunk_steps=3", "--repeats=2", "--eval_batch=32", f"--json={out}"]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300,
+                          env=smoke_subprocess_env())  # its numbers are not under test
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(out.read_text())
     for k in ("train_samples_per_s", "eval_samples_per_s", "compile_s", "matmul_fraction",
@@ -85,9 +86,10 @@ def test_matmul_precision_option_runs_and_stays_close():
     variables = model.init_variables(jax.random.key(0), cfg)
     data = jax.device_put(benchmark.random_data(cfg, 4))
     args = (data["kp"][0], data["vis"][0], data["class_mask"][0], None)
-    ref = model.forward_eval(variables, *args, cfg=cfg)["shape_canonical"]
+    ref = jax.jit(model.forward_eval, static_argnames="cfg")(variables, *args, cfg=cfg)
     low = dataclasses.replace(cfg, matmul_precision="bfloat16")
-    out = model.forward_eval(variables, *args, cfg=low)["shape_canonical"]
+    out = jax.jit(model.forward_eval, static_argnames="cfg")(variables, *args, cfg=low)
+    ref, out = ref["shape_canonical"], out["shape_canonical"]
     # The trunks' products take bfloat16 operands on every backend (CPU included), so
     # the result moves, a little; the output and the parameters stay float32.
     assert out.dtype == ref.dtype == np.float32

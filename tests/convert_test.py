@@ -42,7 +42,7 @@ def phi_outputs(fixture, converted):
     def fn(k, v):
         return model.forward_eval(converted.variables, k, v, jnp.ones(17), None, converted.config)
 
-    return {k: np.asarray(v) for k, v in jax.vmap(fn)(kp, vis).items()}
+    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(fn))(kp, vis).items()}
 
 
 def test_release_options_map_to_model_config(fixture, converted):

@@ -91,8 +91,9 @@ def _run(args, cwd, env, timeout=600):
 
 
 def test_the_installed_package_trains_predicts_and_runs_the_notebook_from_elsewhere(
-        installed, tmp_path):
+        installed, tmp_path, smoke_subprocess_env):
     env, venv = installed
+    env = dict(env, XLA_FLAGS=smoke_subprocess_env()["XLA_FLAGS"])  # smoke-sized models
     where = _run([str(venv / "bin" / "python"), "-c",
                   "import c3dpo_jax, os; print(os.path.dirname(c3dpo_jax.__file__))"],
                  tmp_path, env).stdout.strip()

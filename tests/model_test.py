@@ -89,7 +89,7 @@ def test_eval_keeps_visible_input_points_and_is_batch_independent():
     np.testing.assert_allclose(
         np.asarray(outs["shape_image_coord"])[..., :2][vis], data.kp[vis], atol=1e-5
     )
-    single = model.forward_eval(
+    single = jax.jit(model.forward_eval, static_argnums=5)(
         variables, batch["kp"][2], batch["vis"][2], batch["class_mask"][2], None, CFG
     )
     np.testing.assert_allclose(single["shape_image_coord"], outs["shape_image_coord"][2], atol=1e-5)
@@ -130,12 +130,12 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     cfg = dataclasses.replace(CFG, matmul_precision="highest")
     variables = model.init_variables(jax.random.key(0), cfg)
     _, batch = _batch()
-    model.forward_eval(variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None,
-                       cfg)
+    jax.jit(model.forward_eval, static_argnums=5)(  # the config passed positionally
+        variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None, cfg)
     fn = partial(model.forward_train, variables, cfg=cfg)
     keys = jax.random.split(jax.random.key(1), 6)
     rotations = jax.vmap(partial(losses.draw_rotations, cfg=cfg))(keys)
-    jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch")(
+    jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch"))(
         batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
     assert seen == ["highest", "highest"]
 

@@ -46,7 +46,7 @@ def _direct(params, kp, vis):
     """Independent path: vmapped forward_eval on the un-padded batch, invisible zeroed."""
     fn = lambda k, v: model.forward_eval(params.variables, k * v[:, None], v,  # noqa: E731
                                          jnp.ones_like(v), None, params.config)
-    return jax.vmap(fn)(jnp.asarray(kp), jnp.asarray(vis))
+    return jax.jit(jax.vmap(fn))(jnp.asarray(kp), jnp.asarray(vis))
 
 
 def test_batch_matches_the_per_example_model(params):

@@ -6,12 +6,19 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXP = os.path.join(ROOT, "experiments", "time_to_accuracy")
 TINY = ["model.n_fully_connected=32", "model.canonicalization_n_fully_connected=32",
         "model.n_layers=1", "model.canonicalization_n_layers=1", "train.batch_size=16"]
+
+
+@pytest.fixture(autouse=True)
+def _smoke_sized_subprocesses(monkeypatch, smoke_subprocess_env):
+    """Every script here runs smoke-sized networks: compile them as such (conftest)."""
+    monkeypatch.setenv("XLA_FLAGS", smoke_subprocess_env()["XLA_FLAGS"])
 
 
 def _sequence(path: str) -> None:

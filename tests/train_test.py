@@ -301,7 +301,7 @@ def test_canonicalisation_weight_ramp(setup):
     assert [float(jump.canonicalization_weight(s)) for s in (9, 10)] == [1.0, 0.5]
     state, data, _, _ = setup
     batch = jax.tree.map(lambda a: a[:16], data)
-    loss_fn = train.make_loss_fn(CFG, ramp)
+    loss_fn = jax.jit(train.make_loss_fn(CFG, ramp))
     for step, w in ((0, 1.0), (250, 2.5)):
         objective, (_, m) = loss_fn(state.params, state.batch_stats, batch,
                                     jax.random.key(3), step)
