@@ -506,7 +506,7 @@ _SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_an
 
 
 def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
-                        workdir: str) -> None:
+                 workdir: str) -> None:
     """Refuses in one line to score a workdir's checkpoints with a config whose model
     differs from the one its run trained (other parameter shapes, or other settings such as
     the input scale, which would score another function of the same parameters), naming

@@ -4,6 +4,7 @@ Shared by the experiments that train many models through the CLI (``dev_suite/su
 ``robustness/run.py``); it defines no flags, so tests can import it beside the CLI.
 """
 
+import ast
 import json
 import os
 import subprocess
@@ -49,8 +50,6 @@ def run_main(main, positional: bool = False) -> None:
 def literal(text: str):
     """A ``KEY=VALUE`` override's value as the CLI reads it: a Python literal (``"1.5"`` ->
     1.5, ``"(8,)"`` -> (8,)), else the string itself (``sgd``)."""
-    import ast
-
     try:
         return ast.literal_eval(text)
     except (ValueError, SyntaxError):

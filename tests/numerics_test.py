@@ -24,6 +24,9 @@ CFG = model.ModelConfig(
     z_augment=True,
 )
 B = 6
+# The eval pass as users run it, compiled (op by op it compiles hundreds of programs); the
+# config, positional, is static.
+_forward_eval = jax.jit(model.forward_eval, static_argnums=5)
 
 
 @functools.cache
@@ -86,9 +89,8 @@ def test_eval_outputs_ignore_hidden_values(junk):
     kp, vis = jnp.asarray(batch["kp"][i]), jnp.asarray(batch["vis"][i])
     dirty = jnp.where(vis[:, None] > 0, kp, np.float32(junk))
     ones = jnp.ones(8)
-    forward = jax.jit(model.forward_eval, static_argnums=5)
-    clean_out = forward(_variables(), kp, vis, ones, None, CFG)
-    dirty_out = forward(_variables(), dirty, vis, ones, None, CFG)
+    clean_out = _forward_eval(_variables(), kp, vis, ones, None, CFG)
+    dirty_out = _forward_eval(_variables(), dirty, vis, ones, None, CFG)
     for k in clean_out:
         np.testing.assert_array_equal(dirty_out[k], clean_out[k], err_msg=k)
 
@@ -140,7 +142,8 @@ def test_perspective_hidden_values_are_ignored_too():
     i = int(np.flatnonzero((batch["vis"] == 0).any(1))[0])
     kp, vis = jnp.asarray(batch["kp"][i] * 100 + 300), jnp.asarray(batch["vis"][i])
     K = jnp.array([[500.0, 0, 300], [0, 500, 300], [0, 0, 1]])
-    forward = jax.jit(model.forward_eval, static_argnums=5)
-    clean = forward(variables, kp, vis, jnp.ones(8), K, cfg)
-    dirty = forward(variables, jnp.where(vis[:, None] > 0, kp, np.nan), vis, jnp.ones(8), K, cfg)
+    clean = _forward_eval(variables, kp, vis, jnp.ones(8), K, cfg)
+    dirty = _forward_eval(
+        variables, jnp.where(vis[:, None] > 0, kp, np.nan), vis, jnp.ones(8), K, cfg
+    )
     np.testing.assert_array_equal(dirty["shape_image_coord"], clean["shape_image_coord"])
