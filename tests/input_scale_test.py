@@ -43,11 +43,15 @@ def _train(tmp_path, unit: float):
     workdir = str(tmp_path / f"run_{unit:g}")
     final = train.train_and_evaluate(c, workdir)["final"]
     # reconstruct() applies the scale stored with the model: the user's call scores what
-    # the training's evaluation scored.
+    # the training's evaluation scored. Not to the last digit: reconstruct centres the views
+    # in float64 on the host, the evaluation in float32 on the device, and the refinement's
+    # accept/reject steps turn that rounding into differences of a few 1e-4 (in pixels, on a
+    # CPU with AVX-512); a scale applied 10% wrong moves the error by 5%, an unapplied one
+    # by a factor of 100.
     test, params = views["test"][1], load(workdir)
     rec = reconstruct(params, test.kp, test.vis).shape_3d
     assert evaluation.evaluate(rec, test, c.data.protocol)["mpjpe"] == pytest.approx(
-        final["mpjpe"], rel=1e-4)
+        final["mpjpe"], rel=5e-3)
     radius = np.sqrt(((test.kp3d - test.kp3d.mean(1, keepdims=True)) ** 2).sum(-1).mean())
     return final["mpjpe"] / radius, params
 
