@@ -132,6 +132,21 @@ def test_bvh_forward_kinematics():
         importers.parse_bvh("MOTION")
 
 
+def test_bvh_position_channels_of_a_joint_replace_its_offset():
+    """Files that animate every joint's position repeat each joint's translation from its
+    parent in its position channels: the same skeleton as offsets alone, not one whose bones
+    are twice as long; a changed translation moves the joint to it (a stretched bone)."""
+    six = TINY_BVH.replace(
+        "OFFSET 0 -10 0\n    CHANNELS 3 Zrotation Xrotation Yrotation",
+        "OFFSET 0 -10 0\n    CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation "
+        "Yrotation").replace("0 0 0 0 0 0 0 0 0\n1 2 3 0 0 0 90 0 0",
+                             "0 0 0 0 0 0 0 -10 0 0 0 0\n1 2 3 0 0 0 0 -12 0 90 0 0")
+    assert six != TINY_BVH
+    pos, _ = importers.bvh_positions(six, include_end_sites=True)
+    np.testing.assert_allclose(pos[0], [[0, 0, 0], [0, -10, 0], [0, -18, 0]], atol=1e-9)
+    np.testing.assert_allclose(pos[1], [[1, 2, 3], [1, -10, 3], [9, -10, 3]], atol=1e-9)
+
+
 def test_coco_annotations_become_a_2d_training_set(caplog):
     obj = {"images": [{"id": 7, "file_name": "a.jpg"}],
            "annotations": [{"image_id": 7, "keypoints": [10, 20, 2, 30, 40, 1, 0, 0, 0]},

@@ -291,7 +291,12 @@ def parse_bvh(text: str):
 
 
 def bvh_positions(text: str, include_end_sites: bool = False):
-    """Global joint positions (F, J, 3) of a BVH file by forward kinematics, and names."""
+    """Global joint positions (F, J, 3) of a BVH file by forward kinematics, and names.
+
+    A joint's position channels are its translation from its parent, in place of its
+    OFFSET on that axis (as files that animate every joint's position write them, the
+    translation repeated each frame; the root's OFFSET is usually 0).
+    """
     names, parents, offsets, channels, motion, end_sites = parse_bvh(text)
     f = len(motion)
     pos, rot = np.zeros((f, len(names), 3)), np.zeros((f, len(names), 3, 3))
@@ -303,7 +308,7 @@ def bvh_positions(text: str, include_end_sites: bool = False):
             value = motion[:, col]
             col += 1
             if ch.endswith("position"):
-                local_t[:, "XYZ".index(ch[0])] += value
+                local_t[:, "XYZ".index(ch[0])] = value
             else:
                 local_r = local_r @ axis_rotation(ch[0], np.deg2rad(value))  # BVH: degrees
         p = parents[j]
