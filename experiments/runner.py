@@ -56,6 +56,22 @@ def literal(text: str):
         return text
 
 
+def override(config, items: dict) -> None:
+    """Sets ``items`` (``{"model.lr": 1e-3, ...}``, flattened keys) in ``config``, refusing in
+    one line a key that names no field of it, as the CLI's ``--config.KEY`` does (a misspelt
+    key would otherwise add a field that nothing reads)."""
+    from absl import app
+
+    for key in items:
+        node = config
+        for part in key.split("."):
+            if not hasattr(node, "keys") or part not in node:
+                raise app.UsageError(f"{key}={items[key]!r}: the config has no field {key}")
+            node = node[part]
+    with config.unlocked():
+        config.update_from_flattened_dict(items)
+
+
 def check_steps(workdir: str, steps: int) -> None:
     """Refuses, in one line, to reuse a finished run in ``workdir`` that was trained for
     another number of steps than ``steps`` (its table would be labelled with the new one)."""

@@ -179,6 +179,27 @@ def test_a_finished_run_of_other_steps_is_not_reused_and_jobs_are_checked(tmp_pa
         runner.run_all([(str(run), ["true"])], 0, str(tmp_path))
 
 
+def test_overrides_set_existing_fields_and_refuse_unknown_ones(monkeypatch):
+    """``runner.override`` (the in-process scripts' ``--set``): a flattened key sets its field,
+    values as ``literal`` reads them; a misspelt key is refused in one line before anything
+    changes, where ml-collections alone would add a field that nothing reads."""
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "experiments"))
+    import runner
+    from absl import app
+
+    from configs import own_json
+
+    c = own_json.get_config()
+    runner.override(c, {"loss.deformation_ramp": runner.literal("(10,20)"),
+                        "optim.optimizer": runner.literal("sgd")})
+    assert c.loss.deformation_ramp == (10, 20) and c.optim.optimizer == "sgd"
+    with pytest.raises(app.UsageError, match=r"the config has no field loss.w_canonicalisation"):
+        runner.override(c, {"optim.lr": 1.0, "loss.w_canonicalisation": 3.0})
+    assert c.optim.lr != 1.0 and "w_canonicalisation" not in c.loss
+    with pytest.raises(app.UsageError, match=r"no field optim.lr.x"):
+        runner.override(c, {"optim.lr.x": 1})
+
+
 @pytest.mark.parametrize("script, args, message", [
     ("experiments/dev_suite/analyse.py", ["nonsense"], "error: usage: analyse.py floors | "),
     ("experiments/emsfm/run.py", ["--n_iters=x"], "error: flag --n_iters=x: "),

@@ -38,7 +38,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 
 import suite  # noqa: E402
-from runner import literal, run_main  # noqa: E402
+from runner import literal, override, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -96,7 +96,7 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: floa
 def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
-    c.update_from_flattened_dict({k: literal(v) for k, v in (i.split("=", 1) for i in FLAGS.set)})
+    override(c, {k: literal(v) for k, v in (i.partition("=")[::2] for i in FLAGS.set)})
     train_data = json_dataset.load(info["train"])
     test_data = json_dataset.load(info["test"])
     vpf = 30 if FLAGS.dataset == "humans" else (10 if FLAGS.dataset in suite.NRSFM else 3)

@@ -25,7 +25,7 @@ ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
-from runner import cpu_model, is_finished, literal, run_all, run_main  # noqa: E402
+from runner import cpu_model, is_finished, literal, override, run_all, run_main  # noqa: E402
 
 # Row name -> the config's variant (configs/default.py's apply_variants).
 METHODS = {"C3DPO": "", "C3DPO-equiv": "equiv", "C3DPO-base": "base"}
@@ -74,8 +74,8 @@ def other_inference(method: str, seed: int, workdir: str, extra: list[str]) -> d
     for name, options in INFERENCE.items():
         config = cli.get_config(config_spec(method))
         config.unlock()
-        config.update_from_flattened_dict({**_overrides(extra), "seed": seed,
-                                           **{f"model.{k}": v for k, v in options.items()}})
+        override(config, {**_overrides(extra), "seed": seed,
+                          **{f"model.{k}": v for k, v in options.items()}})
         scores[name] = train.evaluate_checkpoint(config, workdir, save=False)["final"]
     with open(path, "w") as f:
         json.dump(scores, f, indent=1)
