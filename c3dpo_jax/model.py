@@ -170,6 +170,12 @@ class ModelConfig:
     # is given its mirror image, which fits the 2D points equally (orthographic models only;
     # see ``one_handedness``): every view then has the mean shape's handedness.
     test_time_one_handedness: bool = False
+    # What the views' handedness is taken from with ``test_time_one_handedness``:
+    # "mean_shape" (the basis' mean shape, whose handedness the 2D views cannot tell from
+    # its mirror image's) or a body of a known joint order (``HANDEDNESS_REFERENCES``):
+    # each view is then given the handedness of that body, so that a model whose mean shape
+    # came out mirrored still gives the body's own.
+    test_time_handedness_reference: str = "mean_shape"
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -208,6 +214,10 @@ class ModelConfig:
         if handedness_problem(bool(self.test_time_one_handedness), self.projection_type):
             problems.append("test_time_one_handedness=True ("
                             + handedness_problem(True, self.projection_type) + ")")
+        if why := reference_problem(self.test_time_handedness_reference, self.n_keypoints,
+                                    bool(self.test_time_one_handedness)):
+            problems.append(f"test_time_handedness_reference="
+                            f"{self.test_time_handedness_reference!r} ({why})")
         if problems:
             raise ValueError("model config: " + "; ".join(problems))
 
@@ -512,18 +522,48 @@ def handedness_problem(one_handedness: bool, projection_type: str) -> str:
     return orthographic_only(one_handedness, "False", projection_type)
 
 
-def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask):
+# Bodies whose handedness ``test_time_handedness_reference`` can give every view, with the
+# number of points of their joint order: "h36m", a person in Human3.6M's 17-joint order
+# (``data.humans.mean_pose``: pelvis, right leg, left leg, spine, thorax, neck, head, left
+# arm, right arm, as ``skeletons.SKELETONS["h36m"]`` joins them).
+HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17}
+
+
+def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> str:
+    """Why ``test_time_handedness_reference=name`` cannot be used ('' if it can)."""
+    if not isinstance(name, str) or name not in HANDEDNESS_REFERENCES:
+        return f"known: {', '.join(HANDEDNESS_REFERENCES)}"
+    n = HANDEDNESS_REFERENCES[name]
+    if n is not None and n != n_keypoints:
+        return f"a body of {n} points in its joint order; the model has {n_keypoints}"
+    if n is not None and not one_handedness:
+        return "used with test_time_one_handedness=True only"
+    return ""
+
+
+def handedness_reference(name: str) -> Array | None:
+    """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES`` (None: the mean shape)."""
+    if HANDEDNESS_REFERENCES[name] is None:
+        return None
+    from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for
+
+    return jnp.asarray(humans.mean_pose(), jnp.float32)
+
+
+def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):
     """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
-    ``x_canon`` is nearer, up to a proper rotation, to the mirror image of the basis' mean
-    shape than to the mean shape itself (the best orthogonal map from one centred shape onto
-    the other is then a reflection: det of their cross-covariance < 0). The mirror image:
+    ``x_canon`` is nearer, up to a proper rotation, to the mirror image of ``reference``
+    (N, 3), by default the basis' mean shape, than to the reference itself (the best
+    orthogonal map from one centred shape onto the other is then a reflection: det of their
+    cross-covariance < 0; comparing the two Procrustes residuals says the same). The mirror image:
     the camera-frame depth reflected about the translation's (``t``; an orthographic view's
     2D points unchanged), the canonical shape's third axis negated and the rotation
     conjugated by that reflection (``theta``'s first two components negated), so that
     ``scale * x_canon @ rot.T + t`` is still ``x_cam``."""
-    mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
+    if reference is None:
+        reference = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
     mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
-                              @ _class_centred(mean, class_mask)) < 0
+                              @ _class_centred(reference, class_mask)) < 0
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
@@ -647,8 +687,9 @@ def forward_eval(
         problem = handedness_problem(True, cfg.projection_type)
         if problem:
             raise ValueError(f"test_time_one_handedness=True ({problem})")
-        x_cam, x_canon, rot, theta = one_handedness(net, variables["params"], x_cam, t,
-                                                    x_canon, rot, theta, class_mask)
+        x_cam, x_canon, rot, theta = one_handedness(
+            net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask,
+            handedness_reference(cfg.test_time_handedness_reference))
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
     image_xy = reproj_image

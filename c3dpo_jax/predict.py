@@ -1,7 +1,7 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
-      [--refine_iters=0] [--turns=T] [--one_handedness]
+      [--refine_iters=0] [--turns=T] [--one_handedness] [--handedness_reference=h36m]
 
 (or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
@@ -56,6 +56,11 @@ def _define_flags() -> dict:
             "one_handedness", None, "Give every view the handedness of the model's mean shape "
             "(a view and its depth mirror image fit the same 2D points; a model may lift some "
             "views one way and the rest the other); default: the model's setting."),
+        "handedness_reference": flags.DEFINE_string(
+            "handedness_reference", None, "Where --one_handedness takes the handedness from: "
+            "'mean_shape' (the model's mean shape, which may itself be mirrored) or a body of "
+            "the model's joint order, 'h36m' (Human3.6M's 17 joints; turns --one_handedness "
+            "on); default: the model's setting."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 
@@ -165,7 +170,8 @@ def _check_figures(figures: str | None, n_figures: int, skeleton, y_up) -> None:
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
         n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None,
         refine_iters: int | None = None, turns: int | None = None,
-        one_handedness: bool | None = None) -> Reconstruction:
+        one_handedness: bool | None = None,
+        handedness_reference: str | None = None) -> Reconstruction:
     """What the command line does; returns the reconstructions it wrote."""
     _check_output(output)  # before the work, not after it
     _check_figures(figures, n_figures, skeleton, y_up)
@@ -183,7 +189,8 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
                          "a 'K' field (3 x 3) in every entry of the release's JSON format "
                          "(COCO annotations have none)")
     rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"),
-                      turns=turns, refine_iters=refine_iters, one_handedness=one_handedness)
+                      turns=turns, refine_iters=refine_iters, one_handedness=one_handedness,
+                      handedness_reference=handedness_reference)
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:

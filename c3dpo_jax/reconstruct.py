@@ -292,7 +292,7 @@ def _count(name: str, value, least: int) -> int:
 
 
 def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
-                      one_handedness) -> ModelConfig:
+                      one_handedness, handedness_reference=None) -> ModelConfig:
     """``cfg`` with ``reconstruct``'s inference options (None: the model's own), each
     checked against the model in one line."""
     changes = {}
@@ -322,6 +322,20 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
         if problem:
             raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
         changes.update(test_time_one_handedness=bool(one_handedness))
+    if handedness_reference is not None:
+        if one_handedness is None:  # a body to take the handedness from turns it on
+            one_handedness = handedness_reference != "mean_shape" or cfg.test_time_one_handedness
+        problem = model.reference_problem(handedness_reference, cfg.n_keypoints,
+                                          bool(one_handedness))
+        if problem:
+            raise ValueError(f"handedness_reference={handedness_reference!r} ("
+                             + problem.replace("test_time_one_handedness=True",
+                                               "one_handedness=True or None") + ")")
+        problem = model.handedness_problem(bool(one_handedness), cfg.projection_type)
+        if problem:
+            raise ValueError(f"handedness_reference={handedness_reference!r} ({problem})")
+        changes.update(test_time_one_handedness=bool(one_handedness),
+                       test_time_handedness_reference=handedness_reference)
     return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
@@ -336,6 +350,7 @@ def reconstruct(
     turn_span: str | None = None,
     refine_iters: int | np.integer | None = None,
     one_handedness: bool | None = None,
+    handedness_reference: str | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -362,6 +377,12 @@ def reconstruct(
         and its depth mirror image fit the same 2D points, and a model may lift some views
         one way and the rest the other; the 2D fit is unchanged); None: the model's
         ``test_time_one_handedness``; orthographic models only.
+      handedness_reference: where ``one_handedness`` takes the handedness from:
+        "mean_shape" (the model's mean shape, whose own handedness the 2D views leave
+        open: all views right or all one mirror flip away) or a body of the model's joint
+        order, "h36m" (Human3.6M's 17 joints: every view gets a real body's handedness;
+        turns ``one_handedness`` on unless it is False); None: the model's
+        ``test_time_handedness_reference``. See ``model.HANDEDNESS_REFERENCES``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions;
@@ -370,7 +391,8 @@ def reconstruct(
       model lifts each view centred on its visible points, in float64).
     """
     params = params.replace(config=_inference_config(params.config, turns, turn_span,
-                                                      refine_iters, one_handedness))
+                                                      refine_iters, one_handedness,
+                                                      handedness_reference))
     precise = getattr(kp, "dtype", None) not in (np.float32, np.float16)  # lists: float64
     single, kp, offset, vis, K, class_mask = _check_inputs(params.config, kp, vis, K,
                                                            class_mask)

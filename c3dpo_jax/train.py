@@ -533,11 +533,13 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
 
 def _inference_options(config, saved: dict | None) -> dict:
     """The config's ``model.test_time_*`` options that differ from the run's saved config
-    (the others are in its config.json)."""
+    (the others are in its config.json; an option the run's config predates counts as its
+    default, which such a run used)."""
+    if not saved or "model" not in saved:
+        return {}
     now = json.loads(json.dumps(config.model.to_dict()))
-    before = (saved or {}).get("model", {})
-    return {k: v for k, v in now.items()
-            if k.startswith("test_time_") and k in before and before[k] != v}
+    before = {**json.loads(json.dumps(model.ModelConfig().to_dict())), **saved["model"]}
+    return {k: v for k, v in now.items() if k.startswith("test_time_") and before[k] != v}
 
 
 @model.single_precision

@@ -116,6 +116,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.canonicalization_rot_angle": ANGLE,
     "model.test_time_turns": POSITIVE_INT,
     "model.test_time_turn_span": OneOf(model.TURN_SPANS),
+    "model.test_time_handedness_reference": OneOf(tuple(model.HANDEDNESS_REFERENCES)),
     "model.test_time_refine_iters": COUNT,
     "model.test_time_refine_prior": NON_NEGATIVE,
     "loss.huber_scaling": POSITIVE,
@@ -189,6 +190,14 @@ def _cross_field(cfg: dict) -> list[str]:
         if isinstance(value, kind) and isinstance(projection, str):
             problem = rule(value, projection)
             problems.append(f"config.{key}={value} ({problem})" if problem else "")
+    reference = get("model.test_time_handedness_reference")
+    if isinstance(reference, str) and reference in model.HANDEDNESS_REFERENCES and isinstance(
+            n, int):
+        problem = model.reference_problem(reference, n,
+                                          get("model.test_time_one_handedness") is True)
+        if problem:
+            problems.append(f"config.model.test_time_handedness_reference={reference!r} "
+                            f"({problem})")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]

@@ -418,6 +418,55 @@ def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_i
             got[0][i], atol=1e-4)
 
 
+def test_a_body_reference_gives_every_view_the_body_s_handedness():
+    """With ``reference`` (here the built-in humans' average body, "h36m"), a view is
+    mirrored when its shape is nearer, up to a rotation, to the body's mirror image than to
+    the body, whatever the model's own mean shape is; and in the eval pass every view's
+    reconstruction then has the body's handedness, its 2D fit unchanged."""
+    from scipy.spatial.transform import Rotation
+
+    from c3dpo_jax.data import humans
+
+    cfg = dataclasses.replace(CFG, n_keypoints=17)
+    variables = model.init_variables(jax.random.key(2), cfg)
+    body = humans.mean_pose()
+    assert body.shape == (17, 3) and model.handedness_reference("h36m").shape == (17, 3)
+    assert model.handedness_reference("mean_shape") is None
+    rng = np.random.default_rng(6)
+    flip = np.array([1.0, 1.0, -1.0])
+    n = 8
+    truth_mirrored = np.arange(n) % 2 == 0
+    shapes = body + 0.03 * rng.normal(size=(n, 17, 3))
+    shapes = np.where(truth_mirrored[:, None, None], shapes * flip, shapes)
+    rots = Rotation.random(n, random_state=7)
+    t = np.array([0.2, 0.1, 2.0])
+    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + t
+    net = model.make_network(cfg)
+    fn = jax.jit(jax.vmap(partial(model.one_handedness, net, variables["params"]),
+                          in_axes=(0, None, 0, 0, 0, None, None)))
+    got = fn(*(jnp.asarray(a, jnp.float32) for a in (x_cam, t, shapes, rots.as_matrix(),
+                                                      rots.as_rotvec())),
+             jnp.ones(17), jnp.asarray(body, jnp.float32))
+    centred = body - body.mean(0)
+    for i in range(n):
+        x = np.asarray(got[1][i], np.float64)
+        x = x - x.mean(0)
+        assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
+        np.testing.assert_allclose(got[1][i], shapes[i] * (flip if truth_mirrored[i] else 1),
+                                   atol=1e-5)
+        np.testing.assert_allclose(got[0][i, :, :2], x_cam[i, :, :2], atol=1e-5)
+    # The eval pass with the setting: the camera-frame shapes have the body's handedness.
+    kp = jnp.asarray(rng.normal(size=(6, 17, 2)), jnp.float32)
+    vis = jnp.ones((6, 17), jnp.float32)
+    on = _eval(dataclasses.replace(cfg, test_time_one_handedness=True,
+                                   test_time_handedness_reference="h36m"), variables, kp, vis)
+    off = _eval(cfg, variables, kp, vis)
+    np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
+    for x in np.asarray(on["shape_camera"], np.float64):
+        x = x - x.mean(0)
+        assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
+
+
 def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():
     cfg = dataclasses.replace(CFG, test_time_one_handedness=True)
     variables, data, off = _evaluated(CFG, seed=3)
@@ -440,6 +489,12 @@ def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_dep
     ({"test_time_refine_prior": float("nan")}, r"test_time_refine_prior=nan \(must be >= 0\)"),
     ({"projection_type": "perspective", "test_time_one_handedness": True},
      r"test_time_one_handedness=True \(must be False for a perspective model"),
+    ({"test_time_handedness_reference": "h36m"},
+     r"test_time_handedness_reference='h36m' \(used with test_time_one_handedness=True only"),
+    ({"test_time_handedness_reference": "h36m", "test_time_one_handedness": True,
+      "n_keypoints": 18},
+     r"test_time_handedness_reference='h36m' \(a body of 17 points in its joint order; the "
+     r"model has 18"),
 ])
 def test_a_model_config_that_would_change_inference_silently_is_refused(change, message):
     """However it is made (``dataclasses.replace`` here, ``ModelConfig(...)``, a hand-edited

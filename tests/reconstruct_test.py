@@ -194,6 +194,38 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params, monke
         reconstruct(persp, kp, vis, K=K, one_handedness=True)
 
 
+def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeypatch):
+    """``handedness_reference=`` reaches the model's option (its effect: model_test) and turns
+    ``one_handedness`` on unless it is False; a body of another joint order, an unknown
+    name and a body with one_handedness=False are refused in one line."""
+    cfg17 = dataclasses.replace(CFG, n_keypoints=17)
+    p17 = C3DPOParams(model.init_variables(jax.random.key(1), cfg17), cfg17)
+    kp, vis = _inputs(3, n=17)
+    module = sys.modules["c3dpo_jax.reconstruct"]  # the package's attribute is the function
+    seen = []
+
+    def spy(p, *arrays):
+        seen.append((p.config.test_time_one_handedness, p.config.test_time_handedness_reference))
+        return _reconstruct_batch(p, *arrays)
+
+    monkeypatch.setattr(module, "_reconstruct_batch", spy)
+    reconstruct(p17, kp, vis, handedness_reference="h36m")
+    reconstruct(p17, kp, vis, one_handedness=True, handedness_reference="mean_shape")
+    reconstruct(p17, kp, vis, handedness_reference="mean_shape")
+    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape")]
+    kp7, vis7 = _inputs(3)
+    for p, k, v, kwargs, message in (
+            (params, kp7, vis7, {"handedness_reference": "h36m"},
+             r"^handedness_reference='h36m' \(a body of 17 points in its joint order; the "
+             r"model has 7\)"),
+            (p17, kp, vis, {"handedness_reference": "smpl"},
+             r"^handedness_reference='smpl' \(known: mean_shape, h36m\)"),
+            (p17, kp, vis, {"handedness_reference": "h36m", "one_handedness": False},
+             r"^handedness_reference='h36m' \(used with one_handedness=True or None only\)")):
+        with pytest.raises(ValueError, match=message):
+            reconstruct(p, k, v, **kwargs)
+
+
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled
     p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)

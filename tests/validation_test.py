@@ -267,6 +267,26 @@ def test_orthographic_only_settings_are_refused_with_perspective(field, value, o
     assert validation.config_problems(c) == []
 
 
+def test_a_body_reference_needs_its_joint_count_and_one_handedness():
+    c = default.get_config()
+    c.model.n_keypoints = 20
+    c.model.test_time_handedness_reference = "h36m"
+    c.model.test_time_one_handedness = True
+    assert validation.config_problems(c) == [
+        "config.model.test_time_handedness_reference='h36m' (a body of 17 points in its joint "
+        "order; the model has 20)"]
+    c.model.n_keypoints = 17
+    assert validation.config_problems(c) == []
+    c.model.test_time_one_handedness = False
+    assert validation.config_problems(c) == [
+        "config.model.test_time_handedness_reference='h36m' (used with "
+        "test_time_one_handedness=True only)"]
+    c.model.test_time_handedness_reference = "h63m"
+    assert validation.config_problems(c) == [
+        "config.model.test_time_handedness_reference='h63m' (must be one of 'mean_shape', "
+        "'h36m')"]
+
+
 def test_refinement_and_supervised_weight_ranges():
     c = default.get_config()
     c.loss.w_reprojection = c.loss.w_canonicalization = 0.0
