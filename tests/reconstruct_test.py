@@ -226,6 +226,48 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
             reconstruct(p, k, v, **kwargs)
 
 
+def test_body_distance_is_the_procrustes_residual_and_warns_of_another_joint_order(
+        monkeypatch, caplog):
+    """``body_distance`` against scipy's orthogonal Procrustes (rotation or reflection) on
+    unit-norm centred shapes: 0 for turned, mirrored, scaled, shifted copies of the body; and
+    ``reconstruct`` with a body reference warns when the views' canonical shapes are far from
+    it (points in another order), not when they are near."""
+    from scipy.linalg import orthogonal_procrustes
+    from scipy.spatial.transform import Rotation
+
+    module = sys.modules["c3dpo_jax.reconstruct"]  # the package's attribute is the function
+    body = np.asarray(model.handedness_reference("h36m"), np.float64)
+    rng = np.random.default_rng(3)
+    shapes = body + 0.2 * rng.normal(size=(5, 17, 3))
+    want = []
+    for x in shapes:
+        a, b = x - x.mean(0), body - body.mean(0)
+        a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+        r, _ = orthogonal_procrustes(a, b)
+        want.append(np.linalg.norm(a @ r - b))
+    np.testing.assert_allclose(module.body_distance(shapes, body), want, atol=1e-9)
+    rots = Rotation.random(4, random_state=1).as_matrix()
+    copies = 3.0 * np.einsum("bij,nj->bni", rots, body) * np.array([1, 1, -1]) + 5.0
+    np.testing.assert_allclose(module.body_distance(copies, body), 0.0, atol=1e-6)
+
+    cfg17 = dataclasses.replace(CFG, n_keypoints=17)
+    p17 = C3DPOParams(model.init_variables(jax.random.key(1), cfg17), cfg17)
+    kp, vis = _inputs(4, n=17)
+    for canonical, warned in ((copies, False), (copies[:, rng.permutation(17)], True)):
+        def fake(p, kp, vis, *rest, canonical=canonical):
+            b = kp.shape[0]
+            c = np.resize(canonical, (b, 17, 3))
+            return Reconstruction(np.asarray(c), c, np.broadcast_to(np.eye(3), (b, 3, 3)),
+                                  np.zeros((b, 3)), np.asarray(kp))
+
+        monkeypatch.setattr(module, "_reconstruct_batch", fake)
+        caplog.clear()
+        reconstruct(p17, kp, vis, handedness_reference="h36m")
+        assert ("far from the 'h36m' body" in caplog.text) == warned
+        reconstruct(p17, kp, vis)  # no body asked for: nothing to check
+        assert caplog.text.count("far from the") == warned
+
+
 def test_batch_sizes_share_compiles_by_power_of_two_bucket(params):
     cfg = dataclasses.replace(CFG, n_keypoints=9)  # a model no other test compiled
     p = C3DPOParams(model.init_variables(jax.random.key(0), cfg), cfg)
