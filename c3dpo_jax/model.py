@@ -174,7 +174,10 @@ class ModelConfig:
     # "mean_shape" (the basis' mean shape, whose handedness the 2D views cannot tell from
     # its mirror image's) or a body of a known joint order (``HANDEDNESS_REFERENCES``):
     # each view is then given the handedness of that body, so that a model whose mean shape
-    # came out mirrored still gives the body's own.
+    # came out mirrored still gives the body's own. "auto" (a training config's value,
+    # resolved from the training views by ``train.resolve_handedness``): a body whose
+    # projections fit the training views, with ``test_time_one_handedness`` on, else the
+    # mean shape.
     test_time_handedness_reference: str = "mean_shape"
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
@@ -531,8 +534,10 @@ HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17}
 
 def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> str:
     """Why ``test_time_handedness_reference=name`` cannot be used ('' if it can)."""
+    if name == "auto":
+        return ""
     if not isinstance(name, str) or name not in HANDEDNESS_REFERENCES:
-        return f"known: {', '.join(HANDEDNESS_REFERENCES)}"
+        return f"known: {', '.join(HANDEDNESS_REFERENCES)}, auto"
     n = HANDEDNESS_REFERENCES[name]
     if n is not None and n != n_keypoints:
         return f"a body of {n} points in its joint order; the model has {n_keypoints}"
@@ -543,6 +548,10 @@ def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> st
 
 def handedness_reference(name: str) -> Array | None:
     """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES`` (None: the mean shape)."""
+    if name == "auto":
+        raise ValueError("model.test_time_handedness_reference='auto' means 'from the training "
+                         "data' and was not resolved (train.resolve_handedness(config, "
+                         "train_data), as train_and_evaluate does; a loaded model has it)")
     if HANDEDNESS_REFERENCES[name] is None:
         return None
     from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for

@@ -361,6 +361,9 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
             raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
         changes.update(test_time_one_handedness=bool(one_handedness))
     if handedness_reference is not None:
+        if isinstance(handedness_reference, str) and handedness_reference == "auto":
+            raise ValueError("handedness_reference='auto' (a training setting, resolved from "
+                             "the training views; name a body or 'mean_shape')")
         if one_handedness is None:  # a body to take the handedness from turns it on
             one_handedness = handedness_reference != "mean_shape" or cfg.test_time_one_handedness
         problem = model.reference_problem(handedness_reference, cfg.n_keypoints,

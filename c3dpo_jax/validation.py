@@ -116,7 +116,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.canonicalization_rot_angle": ANGLE,
     "model.test_time_turns": POSITIVE_INT,
     "model.test_time_turn_span": OneOf(model.TURN_SPANS),
-    "model.test_time_handedness_reference": OneOf(tuple(model.HANDEDNESS_REFERENCES)),
+    "model.test_time_handedness_reference": OneOf((*model.HANDEDNESS_REFERENCES, "auto")),
     "model.test_time_refine_iters": COUNT,
     "model.test_time_refine_prior": NON_NEGATIVE,
     "loss.huber_scaling": POSITIVE,

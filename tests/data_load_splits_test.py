@@ -104,3 +104,41 @@ def test_the_input_scale_uses_the_intrinsics_only_for_a_perspective_model():
     assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(1.0)
     c.model.projection_type = "perspective"
     assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(500.0)
+
+
+def test_handedness_from_a_body_whose_projections_fit_the_training_views():
+    """``"auto"``: people in the h36m body's joint order (the built-in humans' views, upright
+    cameras, self-occlusion) get the body's handedness with one handedness on; the same
+    views with their points in another order, another number of points, a perspective
+    model or a value that is not "auto" keep what the config says; a saved config's value
+    is kept."""
+    from c3dpo_jax import model, train
+    from c3dpo_jax.data import humans
+
+    people = humans.make_split(20, views_per_pose=5, seed=1)
+    body = np.asarray(model.handedness_reference("h36m"))
+    order = np.random.default_rng(0).permutation(17)
+    shuffled = type(people)(kp=people.kp[:, order], vis=people.vis[:, order])
+    assert train.body_fit_2d(body, people) < 0.5 * train.BODY_FIT_2D
+    assert train.body_fit_2d(body, shuffled) > 1.2 * train.BODY_FIT_2D
+    c = own_json.get_config()
+    c.model.n_keypoints = 17
+    assert c.model.test_time_handedness_reference == "auto"
+    assert not c.model.test_time_one_handedness
+    got = train.resolve_handedness(c, people).model
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("h36m", True)
+    assert c.model.test_time_handedness_reference == "auto"  # a copy
+    for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"})):
+        c2 = own_json.get_config()
+        c2.model.n_keypoints = 17
+        c2.model.update(change)
+        got = train.resolve_handedness(c2, data).model
+        assert (got.test_time_handedness_reference, got.test_time_one_handedness) == (
+            "mean_shape", False)
+    saved = {"model": {"test_time_handedness_reference": "mean_shape",
+                       "test_time_one_handedness": True}}
+    got = train.resolve_handedness(c, people, saved).model
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == (
+        "mean_shape", True)
+    c.model.test_time_handedness_reference = "mean_shape"
+    assert train.resolve_handedness(c, people) is c

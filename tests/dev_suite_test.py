@@ -47,6 +47,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
         config = json.load(f)
     assert config["optim"]["lr"] == 0.001 and config["model"]["n_keypoints"] == 9
     assert config["model"]["keypoint_rescale"] > 0  # own_json's 0 ("auto") resolved, saved
+    assert config["model"]["test_time_handedness_reference"] == "mean_shape"  # 9 points
     with open(workdir / "eval_results.json") as f:
         res = json.load(f)
     assert [h["step"] for h in res["history"]] == [10] and res["final"]["step"] == 20

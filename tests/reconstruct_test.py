@@ -219,7 +219,10 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
              r"^handedness_reference='h36m' \(a body of 17 points in its joint order; the "
              r"model has 7\)"),
             (p17, kp, vis, {"handedness_reference": "smpl"},
-             r"^handedness_reference='smpl' \(known: mean_shape, h36m\)"),
+             r"^handedness_reference='smpl' \(known: mean_shape, h36m, auto\)"),
+            (p17, kp, vis, {"handedness_reference": "auto"},
+             r"^handedness_reference='auto' \(a training setting, resolved from the training "
+             r"views"),
             (p17, kp, vis, {"handedness_reference": "h36m", "one_handedness": False},
              r"^handedness_reference='h36m' \(used with one_handedness=True or None only\)")):
         with pytest.raises(ValueError, match=message):

@@ -144,8 +144,8 @@ def base_config() -> dict:
 
 def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
     """The flattened config a run of the suite is made with: ``base`` (``base_config``), the
-    settings ``command`` passes, then the variant's overrides (the data paths and the input
-    scale resolved from the data left out)."""
+    settings ``command`` passes, then the variant's overrides (the data paths, and the input
+    scale and handedness resolved from the data, left out)."""
     config = dict(base)
     config.update({"data.protocol": data["protocol"], "model.n_keypoints": data["n_keypoints"],
                    "seed": int(seed), "train.progress_bar": False,
@@ -157,6 +157,9 @@ def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
         config.pop(key, None)
     if config.get("model.keypoint_rescale") == 0:  # resolved from the training data
         config.pop("model.keypoint_rescale")
+    if config.get("model.test_time_handedness_reference") == "auto":  # the same, with its
+        config.pop("model.test_time_handedness_reference")  # one handedness setting
+        config.pop("model.test_time_one_handedness", None)
     return config
 
 
