@@ -370,7 +370,7 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     before = (saved or {}).get("model", {})
     if before.get("test_time_handedness_reference", "auto") != "auto":
         config.model.test_time_handedness_reference = before["test_time_handedness_reference"]
-        config.model.test_time_one_handedness = before["test_time_one_handedness"]
+        config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))
         return config
     config.model.test_time_handedness_reference = "mean_shape"
     orthographic = config.model.projection_type == "orthographic"
