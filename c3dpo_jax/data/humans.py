@@ -88,7 +88,7 @@ def forward_kinematics(offsets: np.ndarray, angles: np.ndarray):
 def mean_pose(n: int = 2000, seed: int = 0) -> np.ndarray:
     """(17, 3) the generator's average body: the mean joint positions of ``n`` random
     people in random poses, each centred (y up, facing +z, the left side at +x; the rest
-    pose is nearly flat, the average one has its knees, feet and arms' bends). A reference
+    pose is nearly flat, the average one has its knees, wrists and head to the front). A reference
     for the handedness of reconstructions in this joint order (Human3.6M's)."""
     rng = np.random.default_rng(seed)
     pos, _ = forward_kinematics(random_proportions(rng, n), random_joint_angles(rng, n))
