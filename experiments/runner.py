@@ -57,7 +57,7 @@ def literal(text: str):
 
 
 def override(config, items: dict) -> None:
-    """Sets ``items`` (``{"model.lr": 1e-3, ...}``, flattened keys) in ``config``, refusing in
+    """Sets ``items`` (``{"optim.lr": 1e-3, ...}``, flattened keys) in ``config``, refusing in
     one line a key that names no field of it, as the CLI's ``--config.KEY`` does (a misspelt
     key would otherwise add a field that nothing reads)."""
     from absl import app

@@ -128,7 +128,8 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     got = train.resolve_handedness(c, people).model
     assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("h36m", True)
     assert c.model.test_time_handedness_reference == "auto"  # a copy
-    for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"})):
+    for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"}),
+                         (people, {"n_keypoints": 20})):
         c2 = own_json.get_config()
         c2.model.n_keypoints = 17
         c2.model.update(change)
