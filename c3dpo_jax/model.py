@@ -546,6 +546,17 @@ def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> st
     return ""
 
 
+@functools.lru_cache
+def _body(name: str) -> np.ndarray:
+    """The body ``name`` as a read-only numpy array, made once per process (numpy, not jax:
+    a jax array made while a function is traced would be that trace's)."""
+    from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for
+
+    body = np.asarray(humans.mean_pose(), np.float32)
+    body.setflags(write=False)
+    return body
+
+
 def handedness_reference(name: str) -> Array | None:
     """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES`` (None: the mean shape)."""
     if name == "auto":
@@ -554,9 +565,7 @@ def handedness_reference(name: str) -> Array | None:
                          "train_data), as train_and_evaluate does; a loaded model has it)")
     if HANDEDNESS_REFERENCES[name] is None:
         return None
-    from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for
-
-    return jnp.asarray(humans.mean_pose(), jnp.float32)
+    return jnp.asarray(_body(name))
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):

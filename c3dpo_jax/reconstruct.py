@@ -306,8 +306,10 @@ def body_distance(shapes, body) -> np.ndarray:
 def _warn_if_not_the_body(cfg: ModelConfig, canonical: np.ndarray) -> None:
     """A warning when the views, taking their handedness from a body, do not look like it:
     points in another order than the body's take a handedness that means nothing."""
+    if not cfg.test_time_one_handedness:
+        return
     body = model.handedness_reference(cfg.test_time_handedness_reference)
-    if not cfg.test_time_one_handedness or body is None:
+    if body is None:
         return
     distance = float(np.median(body_distance(canonical, np.asarray(body))))
     if distance > BODY_DISTANCE_WARNING:

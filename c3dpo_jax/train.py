@@ -387,6 +387,13 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     return config
 
 
+def resolve_from_data(config, train_data: KeypointData, saved: dict | None = None):
+    """``config`` with the settings it leaves to the training data resolved: the input scale
+    (``resolve_input_scale``) and the handedness at inference (``resolve_handedness``),
+    each from ``saved`` (a workdir's config.json) when it holds them."""
+    return resolve_handedness(resolve_input_scale(config, train_data, saved), train_data, saved)
+
+
 def _start_from(state: TrainState, path: str) -> TrainState:
     """``state`` with the parameters and BatchNorm statistics of the model at ``path`` (a
     workdir or one of its checkpoint steps; ``train.init_from``), the optimiser fresh."""
@@ -421,12 +428,11 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     hooks = hooks or Hooks()
     train_data, test_data = load_splits(config.data)
     init_from = config.train.get("init_from") or ""
-    # A resumed run keeps its own input scale; one that starts from another run's parameters
-    # takes that run's (only then is the other run read).
+    # A resumed run keeps its own input scale and handedness; one that starts from another
+    # run's parameters takes that run's (only then is the other run read).
     scale_from = (checkpoint.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
                   checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
-    config = resolve_handedness(resolve_input_scale(config, train_data, scale_from),
-                                train_data, scale_from)
+    config = resolve_from_data(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
     for warning in spec.warnings():
         logging.warning("%s", warning)
@@ -612,8 +618,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
     saved = checkpoint.load_config(workdir)
-    config = resolve_handedness(resolve_input_scale(config, train_data, saved), train_data,
-                                saved)
+    config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
     template = model.variables_shape(model_cfg)

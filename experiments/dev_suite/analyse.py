@@ -570,7 +570,7 @@ def handedness(run: str) -> list[float]:
     test, model = _test_split_and_model(run)
     out = []
     for on, reference in ((False, "mean_shape"), (True, "mean_shape"), (True, "h36m")):
-        if model.config.n_keypoints != 17 and reference == "h36m":
+        if model_lib.reference_problem(reference, model.config.n_keypoints):
             out += [float("nan")] * 2
             continue
         m = model.replace(config=dataclasses.replace(
