@@ -35,6 +35,14 @@ def cpu_model() -> str:
     return names[0] if names else platform.processor()
 
 
+def machine() -> dict:
+    """How a result was made, for its record: the CPU model, the cores this process may use
+    and the jax version (results differ across machines and versions in the last digits)."""
+    import jax
+
+    return {"cpu": cpu_model(), "cores": len(os.sched_getaffinity(0)), "jax": jax.__version__}
+
+
 def run_main(main, positional: bool = False) -> None:
     """Runs an experiment's ``main`` as the library's commands run (``c3dpo_jax.cli.run``):
     an error in the input (a flag's value, a missing file, ``app.UsageError``) as one line

@@ -201,6 +201,18 @@ def test_overrides_set_existing_fields_and_refuse_unknown_ones(monkeypatch):
         runner.override(c, {"optim.lr.x": 1})
 
 
+def test_diagnostics_keep_one_record_per_step_and_split_on_resume(tmp_path):
+    """diagnose.py's records: a step evaluated again after a resume replaces its earlier
+    record of that split instead of adding a second one; other steps and splits stay."""
+    path = str(tmp_path / "diagnostics.jsonl")
+    rows = [dict(step=1, split="train", mpjpe=0.5), dict(step=1, split="test", mpjpe=0.6),
+            dict(step=2, split="train", mpjpe=0.4), dict(step=2, split="train", mpjpe=0.3)]
+    _suite_value("diagnose", f"[diagnose._write_record({path!r}, r) for r in {rows!r}] and 0")
+    with open(path) as f:
+        kept = [json.loads(line) for line in f]
+    assert kept == rows[:2] + rows[3:]
+
+
 @pytest.mark.parametrize("script, args, message", [
     ("experiments/dev_suite/analyse.py", ["nonsense"], "error: usage: analyse.py floors | "),
     ("experiments/emsfm/run.py", ["--n_iters=x"], "error: flag --n_iters=x: "),

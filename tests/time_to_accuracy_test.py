@@ -50,6 +50,7 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     assert loop["final"]["step"] == 20 and loop["final"]["mpjpe"] == result["curve"][-1]["mpjpe"]
     assert result["recipe_steps"] > 20 and not result["ended"]  # the budget stopped it
     assert result["config"]["model"]["n_fully_connected"] == 32
+    assert result["machine"]["cpu"] and result["machine"]["cores"] >= 1  # how it was made
     assert set(result["baselines"]) == {"zero depth", "fitted mean shape", "oracle mean shape",
                                         "fitted PCA basis"}
     assert all(np.isfinite(p["mpjpe"]) for p in result["curve"])

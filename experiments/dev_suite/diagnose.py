@@ -93,6 +93,20 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str, rescale: floa
     return out
 
 
+def _write_record(path: str, row: dict) -> None:
+    """Appends ``row`` to the JSON-lines file, replacing an earlier record of the same step
+    and split: a resumed run evaluates again the steps after its last checkpoint, which a
+    plain append would record twice."""
+    rows = []
+    if os.path.exists(path):
+        with open(path) as f:
+            rows = [json.loads(line) for line in f if line.strip()]
+    rows = [r for r in rows if (r["step"], r["split"]) != (row["step"], row["split"])]
+    with open(path + ".tmp", "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in [*rows, row])
+    os.replace(path + ".tmp", path)
+
+
 def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
@@ -103,7 +117,7 @@ def main(argv):
     n = min(FLAGS.n_train_views, len(train_data)) // vpf * vpf
     start = np.random.default_rng(0).integers(0, (len(train_data) - n) // vpf + 1) * vpf
     train_sub = train_data.subset(np.arange(start, start + n))  # whole frames, in order
-    c = train.resolve_input_scale(c, train_data)
+    c = train.resolve_from_data(c, train_data)
     spec = train.RunSpec.from_config(c)
     os.makedirs(FLAGS.diag_out, exist_ok=True)
     path = os.path.join(FLAGS.diag_out, "diagnostics.jsonl")
@@ -115,8 +129,7 @@ def main(argv):
             row = dict(step=record["step"], split=split,
                        **measure(pred, data, vpf, info["protocol"],
                                     spec.model.keypoint_rescale))
-            with open(path, "a") as f:
-                f.write(json.dumps(row) + "\n")
+            _write_record(path, row)
             print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in row.items()), flush=True)
 

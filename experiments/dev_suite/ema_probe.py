@@ -40,7 +40,7 @@ def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     test_data = json_dataset.load(info["test"])
-    c = train.resolve_input_scale(c, json_dataset.load(info["train"]))
+    c = train.resolve_from_data(c, json_dataset.load(info["train"]))
     spec = train.RunSpec.from_config(c)
     taus = [float(t) for t in FLAGS.taus]
     emas, last = {}, {"step": 0}

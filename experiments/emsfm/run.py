@@ -27,7 +27,7 @@ from absl import flags
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from runner import run_main  # noqa: E402
+from runner import machine, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, emsfm, evaluation, nrsfm_metrics  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
@@ -99,7 +99,8 @@ def main(argv):
     for name in FLAGS.datasets:
         rows, n_views = run_dataset(name)
         with open(os.path.join(FLAGS.out, name + ".json"), "w") as f:
-            json.dump({"n_iters": FLAGS.n_iters, "seed": FLAGS.seed, "rows": rows}, f, indent=1)
+            json.dump({"n_iters": FLAGS.n_iters, "seed": FLAGS.seed, "machine": machine(),
+                       "rows": rows}, f, indent=1)
         print(table(name, n_views, rows) + "\n", flush=True)
 
 

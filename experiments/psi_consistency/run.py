@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "experiments"))
 
 import consistency  # noqa: E402
-from runner import cpu_model, run_main  # noqa: E402
+from runner import machine, run_main  # noqa: E402
 
 # label, config spec, workdir name
 MODELS = (("C3DPO", "configs/humans.py", "full"),
@@ -248,7 +248,7 @@ def main(argv):
                      "configs": {label: spec for label, spec, _ in MODELS}},
         **results,
         "wall_s": {"training": trained - start, "analysis": time.perf_counter() - trained},
-        "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
+        "machine": machine(),
     }
     os.makedirs(FLAGS.out, exist_ok=True)
     write_figure(results, canonical_shapes, angles_deg,

@@ -49,7 +49,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # for ``runne
 import flax  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from runner import literal, repo_path, run_main  # noqa: E402
+from runner import literal, machine, repo_path, run_main  # noqa: E402
 
 from c3dpo_jax import baselines, evaluation, load, train  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset, load_splits  # noqa: E402
@@ -278,6 +278,7 @@ def run() -> dict:
         config=_recorded(json.loads(c.to_json_best_effort())),
         devices=str(jax.devices()),
         cpu_affinity=len(os.sched_getaffinity(0)),
+        machine=machine(),
     )
 
 
