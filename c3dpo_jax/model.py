@@ -526,10 +526,13 @@ def handedness_problem(one_handedness: bool, projection_type: str) -> str:
 
 
 # Bodies whose handedness ``test_time_handedness_reference`` can give every view, with the
-# number of points of their joint order: "h36m", a person in Human3.6M's 17-joint order
-# (``data.humans.mean_pose``: pelvis, right leg, left leg, spine, thorax, neck, head, left
-# arm, right arm, as ``skeletons.SKELETONS["h36m"]`` joins them).
-HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17}
+# number of points of their joint order (the built-in humans' average body,
+# ``data.humans.mean_pose``): "h36m", a person in Human3.6M's 17-joint order (pelvis,
+# right leg, left leg, spine, thorax, neck, head, left arm, right arm, as
+# ``skeletons.SKELETONS["h36m"]`` joins them); "coco", in COCO's 17 person keypoints, the
+# common 2D detectors' order (nose, eyes, ears, then shoulders, elbows, wrists, hips, knees,
+# ankles, left before right; ``data.humans.coco_from_h36m``).
+HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17, "coco": 17}
 
 
 def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> str:
@@ -552,7 +555,7 @@ def _body(name: str) -> np.ndarray:
     a jax array made while a function is traced would be that trace's)."""
     from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for
 
-    body = np.asarray(humans.mean_pose(), np.float32)
+    body = np.asarray(humans.mean_pose(order=name), np.float32)
     body.setflags(write=False)
     return body
 

@@ -1,7 +1,7 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
-      [--refine_iters=0] [--turns=T] [--one_handedness] [--handedness_reference=h36m]
+      [--refine_iters=0] [--turns=T] [--one_handedness] [--handedness_reference=h36m|coco]
 
 (or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
@@ -41,8 +41,9 @@ def _define_flags() -> dict:
         "figures": flags.DEFINE_string("figures", None, "Optional directory for a few pictures."),
         "n_figures": flags.DEFINE_integer("n_figures", 3, "Samples to draw with --figures."),
         "skeleton": flags.DEFINE_string(
-            "skeleton", None, "Lines for the pictures: a built-in name (h36m, cub_birds, ...) or "
-            "index pairs such as 0-1,1-2,2-3 (default: the input's or the training data's)."),
+            "skeleton", None, "Lines for the pictures: a built-in name (h36m, coco, cub_birds, "
+            "...) or index pairs such as 0-1,1-2,2-3 (default: the input's or the training "
+            "data's)."),
         "y_up": flags.DEFINE_bool(
             "y_up", None, "Pictures: the input's y axis points up (motion capture) rather than "
             "down (image pixels) (default: the input's or the training data's setting)."),
@@ -59,8 +60,9 @@ def _define_flags() -> dict:
         "handedness_reference": flags.DEFINE_string(
             "handedness_reference", None, "Where --one_handedness takes the handedness from: "
             "'mean_shape' (the model's mean shape, which may itself be mirrored) or a body of "
-            "the model's joint order, 'h36m' (Human3.6M's 17 joints; turns --one_handedness "
-            "on); default: the model's setting."),
+            "the model's joint order, 'h36m' (Human3.6M's 17 joints) or 'coco' (COCO's 17 "
+            "person keypoints; either turns --one_handedness on); default: the model's "
+            "setting."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 

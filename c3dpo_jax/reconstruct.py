@@ -286,7 +286,8 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
 # reflection: 0 for copies of the body, at most sqrt(2)) above which the points are
 # probably in another joint order. Views of real people in the body's order, "h36m": medians
 # 0.20-0.40 (the default recipe's models of CMU subject 131 and the built-in humans, seeds
-# 0-2); the same views with their points shuffled: 1.25-1.34.
+# 0-2); the same views with their points shuffled: 1.25-1.34. "coco": CMU 131's people in
+# COCO's order 0.36, the h36m body for them 0.96.
 BODY_DISTANCE_WARNING = 0.8
 
 
@@ -423,8 +424,9 @@ def reconstruct(
       handedness_reference: where ``one_handedness`` takes the handedness from:
         "mean_shape" (the model's mean shape, whose own handedness the 2D views leave
         open: all views right or all one mirror flip away) or a body of the model's joint
-        order, "h36m" (Human3.6M's 17 joints: every view gets a real body's handedness;
-        turns ``one_handedness`` on unless it is False); None: the model's
+        order, "h36m" (Human3.6M's 17 joints) or "coco" (COCO's 17 person keypoints):
+        every view gets a real body's handedness (turns ``one_handedness`` on unless it is
+        False); None: the model's
         ``test_time_handedness_reference``. See ``model.HANDEDNESS_REFERENCES``.
 
     Returns:

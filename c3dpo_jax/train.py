@@ -339,6 +339,7 @@ def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = N
 # training views below which ``resolve_handedness`` takes the views for that body's joint
 # order. "h36m" on 500 training views: CMU subject 131 0.31, the built-in humans 0.21,
 # DeepMimic's joints in its order 0.36; the same views with their points shuffled 0.91-0.98.
+# "coco" on CMU 131's people in COCO's order 0.28 (the h36m body there: 0.78).
 BODY_FIT_2D = 0.6
 BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
 
@@ -360,10 +361,11 @@ def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VI
 def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
     """``model.test_time_handedness_reference = "auto"`` means "from the data": a copy of
     ``config`` with the value (and ``test_time_one_handedness``) a saved config holds, else
-    a body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
-    projections fit the training views (``body_fit_2d`` below ``BODY_FIT_2D``: points in
-    its joint order), with ``test_time_one_handedness`` on, else "mean_shape" (and
-    ``test_time_one_handedness`` as it is); other values are returned unchanged."""
+    the body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
+    projections fit the training views best, if they fit it (``body_fit_2d`` below
+    ``BODY_FIT_2D``: points in its joint order), with ``test_time_one_handedness`` on, else
+    "mean_shape" (and ``test_time_one_handedness`` as it is); other values are returned
+    unchanged."""
     if config.model.get("test_time_handedness_reference") != "auto":
         return config
     config = config.copy_and_resolve_references()
@@ -373,17 +375,17 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
         config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))
         return config
     config.model.test_time_handedness_reference = "mean_shape"
-    orthographic = config.model.projection_type == "orthographic"
-    for name, n in model.HANDEDNESS_REFERENCES.items():
-        if n is None or n != config.model.n_keypoints or not orthographic:
-            continue
-        fit = body_fit_2d(np.asarray(model.handedness_reference(name)), train_data)
-        if fit < BODY_FIT_2D:
-            config.model.test_time_handedness_reference = name
-            config.model.test_time_one_handedness = True
-            logging.info("handedness at inference from the %r body: the training views fit its "
-                         "joint order (2D distance %.2f, below %.2f)", name, fit, BODY_FIT_2D)
-            break
+    if config.model.projection_type != "orthographic":
+        return config
+    fits = {name: body_fit_2d(np.asarray(model.handedness_reference(name)), train_data)
+            for name, n in model.HANDEDNESS_REFERENCES.items()
+            if n is not None and n == config.model.n_keypoints}
+    name = min(fits, key=fits.get, default=None)  # bodies of one number of points: the nearest
+    if name is not None and fits[name] < BODY_FIT_2D:
+        config.model.test_time_handedness_reference = name
+        config.model.test_time_one_handedness = True
+        logging.info("handedness at inference from the %r body: the training views fit its "
+                     "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
     return config
 
 

@@ -30,11 +30,12 @@ coefficients at test time" there).
 pass); with it, ``--config.model.test_time_turns=32
 --config.model.test_time_turn_span=circle_and_range`` gives the 32 turned copies.
 Handedness at inference (``model.test_time_handedness_reference="auto"``): when the points
-are those of people in Human3.6M's 17-joint order (a human body's projections fit the
-training views, ``train.resolve_handedness``), every view gets that body's handedness, so
-the reconstructions are not mirror images (CMU 131: error without the protocol's flip 0.08
-instead of 0.35-0.58; the flip-resolved error unchanged; experiments/dev_suite, "The
-handedness of a human body"); other points keep the model's own, view by view.
+are those of people in Human3.6M's 17-joint order or in COCO's 17 keypoints (a human body's
+projections fit the training views, ``train.resolve_handedness``), every view gets that
+body's handedness, so the reconstructions are not mirror images (CMU 131: error without the
+protocol's flip 0.08 instead of 0.35-0.58; the flip-resolved error unchanged;
+experiments/dev_suite, "The handedness of a human body"); other points keep the model's
+own, view by view.
 ``--config.model.test_time_handedness_reference=mean_shape`` turns it off.
 """
 
@@ -50,7 +51,7 @@ def get_config(arg=None):
     c.loss.deformation_ramp = (1000, 2000)
     c.optim.warmup_steps = 500
     default.refined_inference(c)
-    # People in Human3.6M's 17-joint order get a human body's handedness at inference
-    # (train.resolve_handedness); other points the mean shape's, as before.
+    # People in Human3.6M's or COCO's 17-joint order get a human body's handedness at
+    # inference (train.resolve_handedness); other points the mean shape's, as before.
     c.model.test_time_handedness_reference = "auto"
     return default.apply_variants(c, arg)

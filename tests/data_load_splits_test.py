@@ -108,7 +108,8 @@ def test_the_input_scale_uses_the_intrinsics_only_for_a_perspective_model():
 
 def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     """``"auto"``: people in the h36m body's joint order (the built-in humans' views, upright
-    cameras, self-occlusion) get the body's handedness with one handedness on; the same
+    cameras, self-occlusion) get the body's handedness with one handedness on, in COCO's
+    order (the face points' visibility the head's) the coco body's; the same
     views with their points in another order, another number of points, a perspective
     model or a value that is not "auto" keep what the config says; a saved config's value
     is kept."""
@@ -128,6 +129,16 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     got = train.resolve_handedness(c, people).model
     assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("h36m", True)
     assert c.model.test_time_handedness_reference == "auto"  # a copy
+    # The same people in COCO's order (the detectors'): the coco body fits, the h36m one not.
+    vis = np.concatenate([np.repeat(people.vis[:, 10:11], 5, 1),  # the face: the head's
+                          people.vis[:, [11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3]]], 1)
+    coco = type(people)(kp=humans.coco_from_h36m(people.kp3d)[..., :2], vis=vis)
+    coco_body = np.asarray(model.handedness_reference("coco"))
+    assert train.body_fit_2d(coco_body, coco) < 0.5 * train.BODY_FIT_2D
+    assert train.body_fit_2d(body, coco) > 1.2 * train.BODY_FIT_2D
+    assert train.body_fit_2d(coco_body, people) > 1.2 * train.BODY_FIT_2D
+    got = train.resolve_handedness(c, coco).model
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("coco", True)
     for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"}),
                          (people, {"n_keypoints": 20})):
         c2 = own_json.get_config()

@@ -66,3 +66,47 @@ def test_proportions_spread_sets_how_much_bodies_differ():
     assert 0.04 < spreads[1] < 0.15  # height +-15% and limbs +-10% (uniform)
     with pytest.raises(ValueError, match="proportions spread must be in"):
         humans.make_split(2, views_per_pose=1, proportions=-0.5)
+
+
+def test_coco_order_keeps_the_limbs_and_puts_a_face_on_the_front_of_the_head():
+    """``coco_from_h36m``: COCO's shoulders to ankles are the same joints (left before
+    right); the nose is in front of the neck, above it, between the eyes, the left eye and
+    ear on the body's left; a rotated and shifted body gets the rotated and shifted points
+    (checked with scipy's rotations), a mirrored one the mirrored face."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    pos, _ = humans.forward_kinematics(humans.random_proportions(rng, 6),
+                                       np.zeros((6, 17, 3)))  # rest: y up, facing +z, left +x
+    coco = humans.coco_from_h36m(pos)
+    assert coco.shape == (6, 17, 3) and len(humans.COCO_JOINT_NAMES) == 17
+    names = dict(zip(humans.JOINT_NAMES, range(17)))
+    for i, name in enumerate(humans.COCO_JOINT_NAMES[5:], start=5):
+        np.testing.assert_array_equal(coco[:, i], pos[:, names[name]])
+    nose, l_eye, r_eye, l_ear, r_ear = (coco[:, i] for i in range(5))
+    neck = pos[:, names["neck"]]
+    assert np.all(nose[:, 2] > neck[:, 2] + 0.05) and np.all(nose[:, 1] > neck[:, 1])
+    assert np.all(l_eye[:, 0] > nose[:, 0]) and np.all(r_eye[:, 0] < nose[:, 0])
+    assert np.all(l_ear[:, 0] > l_eye[:, 0]) and np.all(r_ear[:, 0] < r_eye[:, 0])
+    rot = Rotation.random(6, random_state=1).as_matrix()
+    shift = rng.normal(size=(6, 1, 3))
+    np.testing.assert_allclose(
+        humans.coco_from_h36m(np.einsum("pij,pnj->pni", rot, pos) + shift),
+        np.einsum("pij,pnj->pni", rot, coco) + shift, atol=1e-12)
+    swap = [0, 4, 5, 6, 1, 2, 3, 7, 8, 9, 10, 14, 15, 16, 11, 12, 13]  # left <-> right
+    mirrored = humans.coco_from_h36m(pos[:, swap] * [-1, 1, 1])
+    np.testing.assert_allclose(mirrored[:, [0, 2, 1, 4, 3]], coco[:, :5] * [-1, 1, 1],
+                               atol=1e-12)
+
+
+def test_average_bodies_of_both_orders_are_one_body():
+    """``mean_pose(order="coco")`` is the COCO order of the same people's average (the
+    limbs' joints are the h36m body's); an unknown order is refused."""
+    h36m, coco = humans.mean_pose(n=200), humans.mean_pose(n=200, order="coco")
+    assert h36m.shape == coco.shape == (17, 3)
+    np.testing.assert_allclose(coco.mean(0), 0, atol=1e-12)
+    limbs = coco[5:] - coco[5:].mean(0)
+    same = h36m[[11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3]]
+    np.testing.assert_allclose(limbs, same - same.mean(0), atol=1e-12)
+    with pytest.raises(ValueError, match="unknown joint order 'openpose'"):
+        humans.mean_pose(order="openpose")

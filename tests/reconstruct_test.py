@@ -212,14 +212,15 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
     reconstruct(p17, kp, vis, handedness_reference="h36m")
     reconstruct(p17, kp, vis, one_handedness=True, handedness_reference="mean_shape")
     reconstruct(p17, kp, vis, handedness_reference="mean_shape")
-    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape")]
+    reconstruct(p17, kp, vis, handedness_reference="coco")
+    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape"), (True, "coco")]
     kp7, vis7 = _inputs(3)
     for p, k, v, kwargs, message in (
             (params, kp7, vis7, {"handedness_reference": "h36m"},
              r"^handedness_reference='h36m' \(a body of 17 points in its joint order; the "
              r"model has 7\)"),
             (p17, kp, vis, {"handedness_reference": "smpl"},
-             r"^handedness_reference='smpl' \(known: mean_shape, h36m, auto\)"),
+             r"^handedness_reference='smpl' \(known: mean_shape, h36m, coco, auto\)"),
             (p17, kp, vis, {"handedness_reference": "auto"},
              r"^handedness_reference='auto' \(a training setting, resolved from the training "
              r"views"),

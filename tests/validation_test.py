@@ -284,7 +284,7 @@ def test_a_body_reference_needs_its_joint_count_and_one_handedness():
     c.model.test_time_handedness_reference = "h63m"
     assert validation.config_problems(c) == [
         "config.model.test_time_handedness_reference='h63m' (must be one of 'mean_shape', "
-        "'h36m', 'auto')"]
+        "'h36m', 'coco', 'auto')"]
     c.model.test_time_handedness_reference = "auto"  # resolved from the training data
     assert validation.config_problems(c) == []
 

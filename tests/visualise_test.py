@@ -47,10 +47,17 @@ def run(tmp_path_factory):
 
 
 def test_skeletons_by_name_by_text_or_by_pairs_and_unknown_names_are_errors():
-    counts = {"h36m": 17, "cub_birds": 15, "pascal3d/car": 12, "pascal3d/aeroplane": 8,
+    counts = {"h36m": 17, "coco": 17, "cub_birds": 15, "pascal3d/car": 12, "pascal3d/aeroplane": 8,
               "pascal3d/motorbike": 10, "pascal3d/sofa": 10, "pascal3d/chair": 10}
     for name, k in counts.items():
         assert skeletons.skeleton(name, k) == skeletons.SKELETONS[name]
+    # COCO's lines: every body joint reached, each limb's on one side of the body.
+    from c3dpo_jax.data.humans import COCO_JOINT_NAMES as coco
+    pairs = [(coco[a], coco[b]) for a, b in skeletons.SKELETONS["coco"]]
+    assert {n for p in pairs for n in p} == set(coco)
+    assert all(a[:2] == b[:2] for a, b in pairs  # but the nose's and left-right lines
+               if "nose" not in (a, b) and a[2:] != b[2:])
+    assert sum(a[2:] == b[2:] for a, b in pairs) == 3  # eyes, shoulders, hips
     assert skeletons.skeleton("0-1, 1-2 2-3", 4) == [(0, 1), (1, 2), (2, 3)]
     assert skeletons.skeleton([[3, 0]], 4) == [(3, 0)]
     assert skeletons.skeleton(None, 4) == skeletons.skeleton("", 4) == []

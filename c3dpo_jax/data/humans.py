@@ -85,13 +85,55 @@ def forward_kinematics(offsets: np.ndarray, angles: np.ndarray):
     return pos, frames
 
 
-def mean_pose(n: int = 2000, seed: int = 0) -> np.ndarray:
+# COCO's 17 person keypoints, the order of the common 2D detectors.
+COCO_JOINT_NAMES = ("nose", "l_eye", "r_eye", "l_ear", "r_ear", "l_shoulder", "r_shoulder",
+                    "l_elbow", "r_elbow", "l_wrist", "r_wrist", "l_hip", "r_hip", "l_knee",
+                    "r_knee", "l_ankle", "r_ankle")
+# COCO's body joints (5-16) as joints of the Human3.6M order above.
+_COCO_BODY = (11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3)
+# COCO's face points (nose, eyes, ears) in a head frame at the neck joint (9): x to the
+# left, y along the neck-to-head bone, z forward; metres for a neck-to-head bone of
+# _HEAD_BONE, scaled with it. Estimates of an adult's head, not measurements.
+_FACE = np.array([[0.0, 0.06, 0.10], [0.032, 0.09, 0.08], [-0.032, 0.09, 0.08],
+                  [0.075, 0.07, -0.01], [-0.075, 0.07, -0.01]])
+_HEAD_BONE = float(np.linalg.norm(REST_OFFSETS[10]))
+
+
+def coco_from_h36m(joints: np.ndarray) -> np.ndarray:
+    """(..., 17, 3) people in Human3.6M's joint order -> (..., 17, 3) in COCO's
+    (``COCO_JOINT_NAMES``): the shoulders, elbows, wrists, hips, knees and ankles are the
+    same joints; the nose, eyes and ears are placed on the head (``_FACE``), in a frame
+    whose up axis is the neck-to-head bone, whose left axis is the left shoulder's side
+    (made perpendicular to it) and whose forward axis completes a right-handed frame (so a
+    body's mirror image gets the mirrored face). Rotating or shifting the input does the same
+    to the output."""
+    joints = np.asarray(joints, np.float64)
+    neck, head = joints[..., 9, :], joints[..., 10, :]
+    bone = head - neck
+    length = np.linalg.norm(bone, axis=-1, keepdims=True)
+    up = bone / np.maximum(length, 1e-12)
+    side = joints[..., 11, :] - joints[..., 14, :]
+    left = side - np.sum(side * up, -1, keepdims=True) * up
+    left = left / np.maximum(np.linalg.norm(left, axis=-1, keepdims=True), 1e-12)
+    forward = np.cross(left, up)
+    frame = np.stack([left, up, forward], axis=-1)  # columns: the head frame's axes
+    face = neck[..., None, :] + (length[..., None] / _HEAD_BONE) * np.einsum(
+        "...ij,fj->...fi", frame, _FACE)
+    return np.concatenate([face, joints[..., list(_COCO_BODY), :]], axis=-2)
+
+
+def mean_pose(n: int = 2000, seed: int = 0, order: str = "h36m") -> np.ndarray:
     """(17, 3) the generator's average body: the mean joint positions of ``n`` random
     people in random poses, each centred (y up, facing +z, the left side at +x; the rest
-    pose is nearly flat, the average one has its knees, wrists and head to the front). A reference
-    for the handedness of reconstructions in this joint order (Human3.6M's)."""
+    pose is nearly flat, the average one has its knees, wrists and head to the front). A
+    reference for the handedness of reconstructions in this joint order: ``order`` "h36m"
+    (Human3.6M's, the generator's) or "coco" (``coco_from_h36m``)."""
+    if order not in ("h36m", "coco"):
+        raise ValueError(f"unknown joint order {order!r} (known: h36m, coco)")
     rng = np.random.default_rng(seed)
     pos, _ = forward_kinematics(random_proportions(rng, n), random_joint_angles(rng, n))
+    if order == "coco":
+        pos = coco_from_h36m(pos)
     return (pos - pos.mean(1, keepdims=True)).mean(0)
 
 

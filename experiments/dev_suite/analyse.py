@@ -70,9 +70,9 @@ those of the run's own inference (the default's: refined).
 ``handedness --runs=DIR,DIR,...``: for trained runs, on the test views, the fraction of views
 whose unflipped prediction is the better one (``signs``) and the error without the
 protocol's flip, without and with ``model.test_time_one_handedness`` (which leaves the
-flip-resolved error unchanged), then with the handedness of a human body
-(``model.test_time_handedness_reference=h36m``, models of 17 points in Human3.6M's order):
-0 or 1 when every view has one handedness, 1 when it is the truth's.
+flip-resolved error unchanged), then with the handedness of each human body
+(``model.test_time_handedness_reference=h36m`` or ``coco``, models of 17 points): 0 or 1
+when every view has one handedness, 1 when it is the truth's.
 
 ``basis --runs=DIR,DIR,...``: for trained runs, is it the learnt shape basis or the choice of
 its coefficients that separates the model from the truth? The mean distance of the best fit
@@ -562,14 +562,19 @@ def basis(run: str) -> list[float]:
     return out
 
 
+# The human bodies of ``model.HANDEDNESS_REFERENCES`` (``handedness``' last columns).
+BODIES = tuple(name for name, n in model_lib.HANDEDNESS_REFERENCES.items() if n is not None)
+
+
 def handedness(run: str) -> list[float]:
     """Sign agreement and no-flip error without and with ``test_time_one_handedness``, then
-    with the handedness of the built-in humans' average body (``h36m``; models of 17 points
-    in Human3.6M's order only, NaN for others), and the flip-resolved error (the same every
-    way)."""
+    with the handedness of each of the built-in humans' average bodies (``BODIES``: the
+    Human3.6M and COCO joint orders; models of 17 points only, NaN for others), and the
+    flip-resolved error (the same every way)."""
     test, model = _test_split_and_model(run)
     out = []
-    for on, reference in ((False, "mean_shape"), (True, "mean_shape"), (True, "h36m")):
+    for on, reference in ((False, "mean_shape"), (True, "mean_shape"),
+                          *((True, body) for body in BODIES)):
         if model_lib.reference_problem(reference, model.config.n_keypoints):
             out += [float("nan")] * 2
             continue
@@ -815,7 +820,8 @@ def _run_tables() -> dict:
                    "learnt span, training", "inference: MPJPE", "2D", "2D refit from it: MPJPE",
                    "2D", "2D refit from the truth's fit: MPJPE", "2D"], basis),
         "handedness": (["sign agreement", "no flip", "one handedness: sign agreement",
-                        "no flip", "h36m body's handedness: sign agreement", "no flip",
+                        "no flip", *(c for body in BODIES for c in (
+                            f"{body} body's handedness: sign agreement", "no flip")),
                         "flip-resolved"], handedness),
         "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
         "signs": (["sign agreement"], sign_agreement),

@@ -22,7 +22,10 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   for 12 the hips and elbows; every fifth point of the face), the same frames in each split
   and the same training cameras, for data with far fewer points than the suite's;
 - ``deepmimic_v10`` and ``cmu131_v10`` (not in the default list): the same frames and split
-  seen by 10 cameras per frame instead of 3.
+  seen by 10 cameras per frame instead of 3;
+- ``cmu131_coco`` (not in the default list): CMU 131's frames and split with its people in
+  COCO's 17 keypoints, the common 2D detectors' order (the limbs' joints are the same; the
+  nose, eyes and ears are placed on the head by ``data.humans.coco_from_h36m``).
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -77,6 +80,9 @@ SUBSETS = {"cmu131_k8": ("cmu131", (0, 2, 3, 5, 6, 10, 13, 16)),  # pelvis, knee
 # More cameras (not in the default list): a motion-capture set's frames, split and held-out
 # frames seen by 10 cameras per frame instead of 3 (is the 3-camera protocol what bounds it?).
 VIEWS = {"deepmimic_v10": ("deepmimic", 10), "cmu131_v10": ("cmu131", 10)}
+# Another joint order (not in the default list): CMU 131's people in COCO's 17 keypoints,
+# the common 2D detectors' (``humans.coco_from_h36m``: the face points placed on the head).
+ORDERS = {"cmu131_coco": "cmu131"}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -179,7 +185,7 @@ def config_mismatches(workdir: str, expected: dict) -> list[str]:
 
 def make_data(name: str, data_root: str, out: str) -> dict:
     """Writes the dataset's train/test JSON once; returns paths, K and protocol."""
-    from c3dpo_jax.data import importers, json_dataset, load_splits
+    from c3dpo_jax.data import humans, importers, json_dataset, load_splits
     from configs import humans as humans_config
 
     paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
@@ -191,8 +197,9 @@ def make_data(name: str, data_root: str, out: str) -> dict:
         else:
             full, points = SUBSETS.get(name, (name, None))
             full, views = VIEWS.get(full, (full, 3))
+            full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
-            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS}:
+            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -208,6 +215,8 @@ def make_data(name: str, data_root: str, out: str) -> dict:
                 hold_out=MOCAP.get(full, "blocks"), n_blocks=5)
             if points is not None:
                 x = x[:, list(points)]
+            if name in ORDERS:
+                x = humans.coco_from_h36m(x).astype(x.dtype)
             train, test = importers.views_from_sequence(x, seed=0, name=name, **kw)
             protocol = "default"
         os.makedirs(os.path.dirname(info_path), exist_ok=True)
