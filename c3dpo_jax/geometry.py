@@ -39,8 +39,10 @@ def normalise_keypoints(
     return (kp - centre[None]) * rescale, centre
 
 
-def unnormalise_keypoints(kp_norm: Kp2, centre: Float[Array, "2"], rescale: float) -> Kp2:
-    """Inverse of ``normalise_keypoints`` (for every point, visible or not)."""
+def unnormalise_keypoints(kp_norm: Kp2, centre: Float[Array, "2"],
+                          rescale: float | Float[Array, ""]) -> Kp2:
+    """Inverse of ``normalise_keypoints`` (for every point, visible or not); ``rescale``
+    the factor the centred points were multiplied by."""
     return kp_norm / rescale + centre[None]
 
 

@@ -43,13 +43,14 @@ class Prediction(Mapping):
     and a read-only mapping from field name to array, so ``pred.alpha``,
     ``pred["alpha"]``, ``pred.items()`` and ``dict(pred)`` all work (the mapping view
     serves code that reads the outputs as a dict). "Normalised" is the network's frame: the input
-    centred (``kp_mean``) and times ``keypoint_rescale``, after calibration with K for
-    perspective models.
+    centred (``kp_mean``) and times ``keypoint_rescale`` (and over the view's RMS radius
+    with ``keypoint_scaling="per_view"``), after calibration with K for perspective models.
 
     Attributes:
       shape_image_coord: (N, 3) the 3D output in the input's coordinates: xy the input
         where visible (``replace_keypoints_with_input``) else the reprojection, depth
-        divided by ``keypoint_rescale`` (calibrated units for perspective models).
+        divided by the normalisation's factor (``keypoint_rescale``; calibrated units for
+        perspective models).
       shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised; with
         ``test_time_turns`` > 1 its depth (and shape_image_coord's) is the median over
         the turned copies kept, while X, R, theta and alpha are the unturned view's.
@@ -127,6 +128,15 @@ class ModelConfig:
     keypoint_norm_type: str = "to_mean"  # "to_mean" | "to_root"
     root_joint: int = 0
     keypoint_rescale: float = 1.0
+    # How the centred input is scaled (``KEYPOINT_SCALINGS``): "global", the release's, by
+    # ``keypoint_rescale`` alone; "per_view" (not in the release), each view also divided by
+    # its own RMS radius about the visible points' mean and its reconstruction multiplied by
+    # it, so that Phi sees every view at one size and a shape seen at any size gets the same
+    # factorisation (people at different distances from the camera; the training loss then
+    # weighs every view alike; orthographic models only); "auto" (a training config's value),
+    # "per_view" when the training views' sizes differ widely, else "global"
+    # (``train.resolve_keypoint_scaling``).
+    keypoint_scaling: str = "global"
     projection_type: str = "orthographic"  # "orthographic" | "perspective"
     perspective_depth_threshold: float = 0.1
     argmin_translation: bool = False
@@ -214,6 +224,11 @@ class ModelConfig:
             problems.append(f"test_time_refine_iters={iters} ({why})")
         if not prior >= 0:  # NaN too
             problems.append(f"test_time_refine_prior={prior!r} (must be >= 0)")
+        if self.keypoint_scaling not in (*KEYPOINT_SCALINGS, "auto"):
+            problems.append(f"keypoint_scaling={self.keypoint_scaling!r} (known: "
+                            f"{', '.join(KEYPOINT_SCALINGS)}, auto)")
+        elif why := keypoint_scaling_problem(self.keypoint_scaling, self.projection_type):
+            problems.append(f"keypoint_scaling={self.keypoint_scaling!r} ({why})")
         if handedness_problem(bool(self.test_time_one_handedness), self.projection_type):
             problems.append("test_time_one_handedness=True ("
                             + handedness_problem(True, self.projection_type) + ")")
@@ -323,10 +338,19 @@ def _camera(cfg: ModelConfig, phi_out, x_canon):
     return phi_out["scale"] * x_canon @ rot.T, t, rot
 
 
+KEYPOINT_SCALINGS = ("global", "per_view")
+# The least RMS radius "per_view" scaling divides a view by (in the normalised units, where
+# the training views' median is about 1): a view whose visible points nearly coincide is
+# scaled up at most this much instead of dividing by 0.
+MIN_VIEW_RADIUS = 1e-3
+
+
 def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
-    """``(kp_cal, kp_norm, centre)``: calibrated keypoints (perspective) and the
-    network's centred, rescaled input with the centre that was removed. Hidden points
-    are zeroed first: whatever they hold (1e20, NaN) never reaches the arithmetic."""
+    """``(kp_cal, kp_norm, centre, scale)``: calibrated keypoints (perspective), the
+    network's centred, rescaled input, the centre that was removed and the factor the
+    centred points were multiplied by (``keypoint_rescale``, over the view's RMS radius
+    with ``keypoint_scaling="per_view"``). Hidden points are zeroed first: whatever they
+    hold (1e20, NaN) never reaches the arithmetic."""
     if cfg.keypoint_rescale == 0:  # the config's "from the data", never resolved
         raise ValueError("model.keypoint_rescale=0 means 'set it from the training data' and "
                          "was not resolved: the network would see zeros. Resolve it first "
@@ -341,7 +365,17 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
         kp, vis, norm_type=cfg.keypoint_norm_type,
         rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
     )
-    return kp, kp_norm, centre
+    scale = jnp.asarray(cfg.keypoint_rescale, kp_norm.dtype)
+    if cfg.keypoint_scaling == "auto":
+        raise ValueError("model.keypoint_scaling='auto' means 'from the training data' and was "
+                         "not resolved (train.resolve_keypoint_scaling(config, train_data), as "
+                         "train_and_evaluate does; a loaded model has it)")
+    if cfg.keypoint_scaling == "per_view":
+        centred = kp_norm - geometry.masked_mean(kp_norm, vis)[None]  # to_root: not centred
+        radius = jnp.sqrt(geometry.masked_mean(jnp.sum(centred**2, -1), vis))
+        radius = jnp.maximum(radius, MIN_VIEW_RADIUS)
+        kp_norm, scale = kp_norm / radius, scale / radius
+    return kp, kp_norm, centre, scale
 
 
 def _shape(net, params, alpha, class_mask):
@@ -396,7 +430,7 @@ def forward_train(
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
-    _, kp_norm, _ = _normalised_input(cfg, kp, vis, intrinsics)
+    _, kp_norm, _, scale = _normalised_input(cfg, kp, vis, intrinsics)
 
     def phi(kp_in, stats):
         out, upd = net.apply(
@@ -433,7 +467,7 @@ def forward_train(
              "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1)}
     if kp3d is not None:
         terms["sup_dist_sq"] = jnp.sum((_class_centred(x_cam, class_mask) - _class_centred(
-            kp3d * cfg.keypoint_rescale, class_mask)) ** 2, axis=-1)
+            kp3d * scale, class_mask)) ** 2, axis=-1)
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
             net, params, stats, x_canon, class_mask, rotations.canonicalisation
@@ -518,6 +552,12 @@ def refine_problem(iters: int, projection_type: str) -> str:
     """Why ``test_time_refine_iters=iters`` cannot be used with this projection ('' if it
     can; 0, no refinement, always can)."""
     return orthographic_only(iters > 0, "0 (no refinement)", projection_type)
+
+
+def keypoint_scaling_problem(scaling: str, projection_type: str) -> str:
+    """Why ``keypoint_scaling=scaling`` cannot be used with this projection ('' if it can):
+    a perspective view's calibrated points are not a shape's projection up to a scale."""
+    return orthographic_only(scaling == "per_view", "'global' or 'auto'", projection_type)
 
 
 def handedness_problem(one_handedness: bool, projection_type: str) -> str:
@@ -695,7 +735,7 @@ def forward_eval(
     """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi);
     the fields of the ``Prediction`` are documented there."""
     net = make_network(cfg)
-    kp_cal, kp_norm, centre = _normalised_input(cfg, kp, vis, intrinsics)
+    kp_cal, kp_norm, centre, scale = _normalised_input(cfg, kp, vis, intrinsics)
     phi_out = _phi_eval(cfg, net, variables, kp_norm, vis, class_mask)
     x_canon = _shape(net, variables["params"], phi_out["alpha"], class_mask)
     x_cam, t, rot = _camera(cfg, phi_out, x_canon)
@@ -712,11 +752,11 @@ def forward_eval(
             net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask,
             handedness_reference(cfg.test_time_handedness_reference))
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
-    reproj_image = geometry.unnormalise_keypoints(proj, centre, cfg.keypoint_rescale)
+    reproj_image = geometry.unnormalise_keypoints(proj, centre, scale)
     image_xy = reproj_image
     if cfg.replace_keypoints_with_input:
         image_xy = jnp.where(vis[:, None] > 0, kp_cal, reproj_image)
-    shape_image = jnp.concatenate([image_xy, depth[:, None] / cfg.keypoint_rescale], axis=1)
+    shape_image = jnp.concatenate([image_xy, depth[:, None] / scale], axis=1)
     if cfg.projection_type == "perspective":
         # Reprojections back to pixels; shape_image_coord stays in calibrated units.
         reproj_image = geometry.uncalibrate(reproj_image, intrinsics)

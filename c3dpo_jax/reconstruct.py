@@ -47,9 +47,10 @@ class Reconstruction(NamedTuple):
       depth mirror image fit the same points). A perspective model's x, y are calibrated
       (``K^-1`` applied), not pixels.
     shape_canonical (*B, N, 3): the shape in the model's canonical frame, in the network's
-      units (the input times ``params.config.keypoint_rescale``, centred): up to the
-      model's scale and translation, the camera-frame shape in those units is
-      ``shape_canonical @ rotation.T``.
+      units (the input times ``params.config.keypoint_rescale``, centred; with
+      ``keypoint_scaling="per_view"`` each view at unit RMS radius): up to the model's scale and
+      translation, the camera-frame shape in those units is ``shape_canonical @
+      rotation.T``.
     rotation (*B, 3, 3): the camera rotation (canonical frame -> camera frame).
     alpha (*B, D): shape-basis coefficients.
     kp_reprojected (*B, N, 2): the 3D shape projected back to input coordinates.
@@ -172,7 +173,8 @@ def _check_values(cfg: ModelConfig, kp: np.ndarray, vis: np.ndarray, K) -> np.nd
             f"their mean in the model's normalised units (keypoint_rescale "
             f"{cfg.keypoint_rescale:g}; its training data lies within a few units, the limit "
             f"is {MAX_NORMALISED_EXTENT:g}): are the coordinates corrupt or in other units?")
-    _warn_if_other_units(cfg, pts, shown, mean)
+    if cfg.keypoint_scaling != "per_view":  # one that scales each view itself takes any units
+        _warn_if_other_units(cfg, pts, shown, mean)
     return mean
 
 

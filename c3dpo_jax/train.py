@@ -51,7 +51,7 @@ from c3dpo_jax import (
     run_records,
     validation,
 )
-from c3dpo_jax.data import KeypointData, auto_keypoint_rescale, load_splits
+from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, load_splits
 from c3dpo_jax.data.dataset import fingerprint
 from c3dpo_jax.inference import (
     evaluate_baselines,
@@ -389,11 +389,49 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     return config
 
 
+# How much views that look alike differ in size (``data.alike_view_size_ratio``) above
+# which ``resolve_keypoint_scaling`` scales each view by its own size: between the largest
+# among the development suite's sets, each seen at one distance (the built-in humans' 1.07,
+# whose bodies differ in height; the others 1.01-1.05), and the same human sets with every
+# view scaled by a factor between 0.5 and 2 (1.48-1.50), where one input scale for every
+# view failed (CMU 131: 0.51, worse than zero depth; per view 0.12) and per view fails at one
+# distance (CMU 131 0.17 against 0.08, the shark 0.28 against 0.03): the geometric mean of
+# their logarithms (experiments/dev_suite, "People at different distances").
+ALIKE_SIZE_RATIO = 1.18
+
+
+def resolve_keypoint_scaling(config, train_data: KeypointData, saved: dict | None = None):
+    """``model.keypoint_scaling = "auto"`` means "from the data": a copy of ``config`` with
+    the value a saved config holds, else "per_view" for an orthographic model whose training
+    views that look alike differ in size by more than ``ALIKE_SIZE_RATIO`` (subjects at
+    different distances), else "global"; other values are returned unchanged."""
+    if config.model.get("keypoint_scaling") != "auto":
+        return config
+    config = config.copy_and_resolve_references()
+    before = (saved or {}).get("model", {}).get("keypoint_scaling", "auto")
+    if before != "auto":
+        config.model.keypoint_scaling = before
+        return config
+    config.model.keypoint_scaling = "global"
+    if config.model.projection_type != "orthographic":
+        return config
+    ratio = alike_view_size_ratio(train_data)
+    if ratio > ALIKE_SIZE_RATIO:
+        config.model.keypoint_scaling = "per_view"
+        logging.info("each view scaled by its own size (model.keypoint_scaling=per_view): "
+                     "training views that look alike differ in size by %.2fx (median), above "
+                     "%.2fx, as for subjects at different distances", ratio, ALIKE_SIZE_RATIO)
+    return config
+
+
 def resolve_from_data(config, train_data: KeypointData, saved: dict | None = None):
     """``config`` with the settings it leaves to the training data resolved: the input scale
-    (``resolve_input_scale``) and the handedness at inference (``resolve_handedness``),
-    each from ``saved`` (a workdir's config.json) when it holds them."""
-    return resolve_handedness(resolve_input_scale(config, train_data, saved), train_data, saved)
+    (``resolve_input_scale``), the scaling of each view (``resolve_keypoint_scaling``) and the
+    handedness at inference (``resolve_handedness``), each from ``saved`` (a workdir's
+    config.json) when it holds them."""
+    config = resolve_keypoint_scaling(resolve_input_scale(config, train_data, saved),
+                                      train_data, saved)
+    return resolve_handedness(config, train_data, saved)
 
 
 def _start_from(state: TrainState, path: str) -> TrainState:

@@ -108,6 +108,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.keypoint_norm_type": OneOf(("to_mean", "to_root")),
     "model.root_joint": COUNT,
     "model.keypoint_rescale": NON_NEGATIVE,  # 0: from the training data
+    "model.keypoint_scaling": OneOf((*model.KEYPOINT_SCALINGS, "auto")),
     "model.projection_type": OneOf(("orthographic", "perspective")),
     "model.perspective_depth_threshold": POSITIVE,
     "model.depth_offset": Range(),
@@ -185,6 +186,7 @@ def _cross_field(cfg: dict) -> list[str]:
     projection = get("model.projection_type")
     for key, kind, rule in (("model.test_time_refine_iters", int, model.refine_problem),
                             ("model.test_time_one_handedness", bool, model.handedness_problem),
+                            ("model.keypoint_scaling", str, model.keypoint_scaling_problem),
                             ("loss.w_supervised", (int, float), losses.supervised_problem)):
         value = get(key)  # settings for orthographic models only
         if isinstance(value, kind) and isinstance(projection, str):

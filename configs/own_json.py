@@ -37,6 +37,13 @@ protocol's flip 0.08 instead of 0.35-0.58; the flip-resolved error unchanged;
 experiments/dev_suite, "The handedness of a human body"); other points keep the model's
 own, view by view.
 ``--config.model.test_time_handedness_reference=mean_shape`` turns it off.
+Subjects at different distances (``model.keypoint_scaling="auto"``: training views that
+look alike differ in size by more than 1.18x, median, as for people photographed at
+different distances, not a subject filmed at one) get each view scaled by its own size
+before Phi and its reconstruction scaled back (``train.resolve_keypoint_scaling``;
+experiments/dev_suite, "People at different distances"); other data keep one input scale for
+every view, which is much better there. ``--config.model.keypoint_scaling=global`` or
+``per_view`` sets it.
 """
 
 from configs import default
@@ -54,4 +61,7 @@ def get_config(arg=None):
     # People in Human3.6M's or COCO's 17-joint order get a human body's handedness at
     # inference (train.resolve_handedness); other points the mean shape's, as before.
     c.model.test_time_handedness_reference = "auto"
+    # Subjects at different distances get each view scaled by its own size
+    # (train.resolve_keypoint_scaling); others one input scale, as before.
+    c.model.keypoint_scaling = "auto"
     return default.apply_variants(c, arg)

@@ -106,6 +106,51 @@ def test_the_input_scale_uses_the_intrinsics_only_for_a_perspective_model():
     assert train.resolve_input_scale(c, data).model.keypoint_rescale == pytest.approx(500.0)
 
 
+def test_alike_view_size_ratio_compares_each_view_with_the_one_most_like_it():
+    """Views in pairs, each pair one random shape at two sizes a known factor apart (and
+    shifted; a hidden point in one copy): every view's most alike view is its pair, so the
+    ratio is the median of the factors; the same views at one size give 1."""
+    from c3dpo_jax.data import KeypointData, alike_view_size_ratio
+
+    rng = np.random.default_rng(0)
+    shapes = rng.normal(size=(30, 12, 2))
+    factors = rng.uniform(1.1, 3.0, 30)
+    kp = np.stack([shapes, shapes * factors[:, None, None] + 5.0], 1).reshape(60, 12, 2)
+    vis = np.ones((60, 12))
+    vis[1::2, 0] = 0  # hidden in the scaled copy
+    assert alike_view_size_ratio(KeypointData(kp=kp, vis=vis)) == pytest.approx(
+        np.median(factors), rel=0.05)
+    same = np.repeat(shapes, 2, axis=0)
+    assert alike_view_size_ratio(KeypointData(kp=same, vis=vis)) == pytest.approx(1.0, abs=0.05)
+
+
+def test_each_view_is_scaled_by_its_own_size_when_alike_views_differ_in_size():
+    """``keypoint_scaling="auto"``: views of people at one distance keep one input scale;
+    the same views each scaled by a factor 0.5-2x apart get "per_view"; a perspective model,
+    a value that is not "auto" and a saved config's value are kept."""
+    from c3dpo_jax import train
+    from c3dpo_jax.data import alike_view_size_ratio, humans
+
+    people = humans.make_split(60, views_per_pose=10, seed=1)
+    rng = np.random.default_rng(0)
+    factor = np.exp(rng.uniform(np.log(0.5), np.log(2.0), len(people)))[:, None, None]
+    far_and_near = type(people)(kp=people.kp * factor, vis=people.vis)
+    assert alike_view_size_ratio(people) < train.ALIKE_SIZE_RATIO
+    assert alike_view_size_ratio(far_and_near) > train.ALIKE_SIZE_RATIO
+    c = own_json.get_config()
+    assert c.model.keypoint_scaling == "auto"
+    assert train.resolve_keypoint_scaling(c, people).model.keypoint_scaling == "global"
+    assert train.resolve_keypoint_scaling(c, far_and_near).model.keypoint_scaling == "per_view"
+    assert c.model.keypoint_scaling == "auto"  # a copy
+    saved = {"model": {"keypoint_scaling": "global"}}
+    assert train.resolve_keypoint_scaling(c, far_and_near, saved).model.keypoint_scaling == (
+        "global")
+    c.model.projection_type = "perspective"
+    assert train.resolve_keypoint_scaling(c, far_and_near).model.keypoint_scaling == "global"
+    c.model.keypoint_scaling = "per_view"
+    assert train.resolve_keypoint_scaling(c, people) is c
+
+
 def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     """``"auto"``: people in the h36m body's joint order (the built-in humans' views, upright
     cameras, self-occlusion) get the body's handedness with one handedness on, in COCO's

@@ -48,6 +48,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     assert config["optim"]["lr"] == 0.001 and config["model"]["n_keypoints"] == 9
     assert config["model"]["keypoint_rescale"] > 0  # own_json's 0 ("auto") resolved, saved
     assert config["model"]["test_time_handedness_reference"] == "mean_shape"  # 9 points
+    assert config["model"]["keypoint_scaling"] == "global"  # one distance: one input scale
     with open(workdir / "eval_results.json") as f:
         res = json.load(f)
     assert [h["step"] for h in res["history"]] == [10] and res["final"]["step"] == 20
@@ -199,6 +200,27 @@ def test_overrides_set_existing_fields_and_refuse_unknown_ones(monkeypatch):
     assert c.optim.lr != 1.0 and "w_canonicalisation" not in c.loss
     with pytest.raises(app.UsageError, match=r"no field optim.lr.x"):
         runner.override(c, {"optim.lr.x": 1})
+
+
+def test_scaled_sets_scale_each_views_points_and_truth_by_one_factor_in_range():
+    """suite._scaled (``cmu131_scaled``, ``humans_scaled``): each view's 2D points and 3D
+    truth are the original's times one factor of that view, within SCALE_RANGE, the factors
+    spread over it; the visibility is unchanged."""
+    code = """
+import numpy as np
+from c3dpo_jax.data import KeypointData
+rng = np.random.default_rng(0)
+kp3d = rng.normal(size=(400, 5, 3)).astype(np.float32)
+data = KeypointData(kp=kp3d[..., :2].copy(), vis=np.ones((400, 5), np.float32), kp3d=kp3d)
+out = suite._scaled(data, 0)
+f = out.kp3d / data.kp3d
+out = [float(np.abs(f - f[:, :1, :1]).max()), float(np.abs(out.kp / data.kp - f[:, :1, :1]).max()),
+       float(f.min()), float(f.max()), list(suite.SCALE_RANGE), bool((out.vis == data.vis).all())]
+"""
+    spread, kp_vs_3d, low, high, (lo, hi), vis_same = _suite_value(
+        "suite", f"(exec({code!r}, globals()), out)[1]")
+    assert spread < 1e-5 and kp_vs_3d < 1e-4 and vis_same
+    assert lo <= low < 1.1 * lo and hi / 1.1 < high <= hi
 
 
 def test_diagnostics_keep_one_record_per_step_and_split_on_resume(tmp_path):

@@ -201,6 +201,51 @@ def _eval(cfg, variables, kp, vis):
                             in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
 
 
+def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
+    """``keypoint_scaling="per_view"``: a view scaled by s and shifted gives the same
+    canonical shape and normalised visible points and the 3D output scaled by s (depth too)
+    and shifted in x, y, and the visible points' training terms are unchanged; with
+    "global" the network sees s (its output differs); what hidden points hold and the
+    global input scale change nothing; a view whose points coincide stays finite; an
+    unknown, unresolved or perspective setting is refused."""
+    cfg = dataclasses.replace(CFG, keypoint_scaling="per_view", keypoint_rescale=0.3)
+    variables = _input_dependent_variables(cfg)
+    data, batch = _batch(seed=3)
+    kp, vis = batch["kp"], batch["vis"]
+    s = jnp.asarray([0.5, 2.0, 1.0, 3.0, 0.25, 1.5])[:, None, None]
+    shift = jnp.asarray([[[4.0, -2.0]]])
+    a, b = _eval(cfg, variables, kp, vis), _eval(cfg, variables, kp * s + shift, vis)
+    np.testing.assert_allclose(b["shape_canonical"], a["shape_canonical"], atol=1e-5)
+    shown = np.asarray(vis)[..., None]  # hidden points' values are masked by the network
+    np.testing.assert_allclose(b["kp_norm"] * shown, a["kp_norm"] * shown, atol=1e-5)
+    expected = np.asarray(a["shape_image_coord"]) * np.asarray(s)
+    expected[..., :2] += np.asarray(shift)
+    np.testing.assert_allclose(b["shape_image_coord"], expected, rtol=1e-4, atol=1e-4)
+    hidden = jnp.where(vis[..., None] > 0, kp, 1e6)
+    np.testing.assert_allclose(_eval(cfg, variables, hidden, vis)["shape_image_coord"],
+                               a["shape_image_coord"], atol=1e-5)
+    other_rescale = dataclasses.replace(cfg, keypoint_rescale=3.0)
+    np.testing.assert_allclose(_eval(other_rescale, variables, kp, vis)["shape_image_coord"],
+                               a["shape_image_coord"], rtol=1e-4, atol=1e-5)
+    terms_a, _ = _train_terms(cfg, variables, batch, key)
+    terms_b, _ = _train_terms(cfg, variables, dict(batch, kp=kp * s + shift), key)
+    np.testing.assert_allclose(terms_b["dist_sq"] * vis, terms_a["dist_sq"] * vis, rtol=1e-3,
+                               atol=1e-6)
+    plain = dataclasses.replace(cfg, keypoint_scaling="global")
+    assert not np.allclose(_eval(plain, variables, kp * s, vis)["shape_canonical"],
+                           _eval(plain, variables, kp, vis)["shape_canonical"], atol=1e-3)
+    point = jnp.broadcast_to(kp[:1, :1], kp[:1].shape)
+    assert np.isfinite(np.asarray(_eval(cfg, variables, point, vis[:1])["shape_image_coord"])).all()
+    with pytest.raises(ValueError, match=r"keypoint_scaling='per_view' \(must be 'global' or "
+                       r"'auto' for a perspective model"):
+        dataclasses.replace(cfg, projection_type="perspective")
+    with pytest.raises(ValueError, match=r"keypoint_scaling='each' \(known: global, per_view, "
+                       r"auto\)"):
+        dataclasses.replace(cfg, keypoint_scaling="each")
+    with pytest.raises(ValueError, match=r"keypoint_scaling='auto' means 'from the training"):
+        _eval(dataclasses.replace(cfg, keypoint_scaling="auto"), variables, kp, vis)
+
+
 def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
     cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
     variables = _input_dependent_variables(cfg)

@@ -246,15 +246,16 @@ def test_test_time_turns_rules():
         "'circle_and_range')"]
 
 
-ORTHOGRAPHIC_ONLY = [
-    ("model.test_time_refine_iters", 20, "0 (no refinement)"),
-    ("model.test_time_one_handedness", True, "False"),
-    ("loss.w_supervised", 1.0, "0"),
+ORTHOGRAPHIC_ONLY = [  # field, a value for orthographic models only, its text and value off
+    ("model.test_time_refine_iters", 20, "0 (no refinement)", 0),
+    ("model.test_time_one_handedness", True, "False", False),
+    ("model.keypoint_scaling", "per_view", "'global' or 'auto'", "global"),
+    ("loss.w_supervised", 1.0, "0", 0.0),
 ]
 
 
-@pytest.mark.parametrize(("field", "value", "off"), ORTHOGRAPHIC_ONLY)
-def test_orthographic_only_settings_are_refused_with_perspective(field, value, off):
+@pytest.mark.parametrize(("field", "value", "off", "off_value"), ORTHOGRAPHIC_ONLY)
+def test_orthographic_only_settings_are_refused_with_perspective(field, value, off, off_value):
     c = default.get_config()
     section, name = field.split(".")
     c[section][name] = value
@@ -263,7 +264,7 @@ def test_orthographic_only_settings_are_refused_with_perspective(field, value, o
     assert validation.config_problems(c) == [
         f"config.{field}={value} (must be {off} for a perspective model: orthographic models "
         "only)"]
-    c[section][name] = type(value)()  # off: the release's perspective models are untouched
+    c[section][name] = off_value  # the release's perspective models are untouched
     assert validation.config_problems(c) == []
 
 

@@ -85,16 +85,11 @@ def fingerprint(data: KeypointData) -> str:
     return digest.hexdigest()
 
 
-def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
-                          calibrate: bool | None = None) -> float:
-    """The ``model.keypoint_rescale`` that gives the views' 2D points, centred on their
-    visible mean, a median RMS radius of ``target_rms``.
-
-    The paper scales the centred 2D points of a dataset so that their extent is about
-    [-1, 1]; the median over views of the RMS radius is a robust form of that rule, the
-    same in any units. With ``calibrate`` (default: when the data has ``intrinsics``) the
-    points are calibrated with them first, as a perspective model sees them; an
-    orthographic model sees the points as they are, whatever intrinsics the data has."""
+def view_radii(data: KeypointData, calibrate: bool | None = None) -> np.ndarray:
+    """The RMS radius of each view's visible 2D points about their mean, for the views with
+    two or more visible points and a finite, positive radius. With ``calibrate`` (default:
+    when the data has ``intrinsics``) the points are calibrated with them first, as a
+    perspective model sees them."""
     kp, vis = np.asarray(data.kp, np.float64), np.asarray(data.vis, np.float64)
     calibrate = data.intrinsics is not None if calibrate is None else calibrate
     if calibrate and data.intrinsics is not None:
@@ -105,11 +100,57 @@ def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
     mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
     sq = np.einsum("mn,mn->m", vis, ((kp - mean[:, None]) ** 2).sum(-1))
     radius = np.sqrt(sq[count > 1] / count[count > 1])
-    radius = radius[np.isfinite(radius) & (radius > 0)]
+    return radius[np.isfinite(radius) & (radius > 0)]
+
+
+def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
+                          calibrate: bool | None = None) -> float:
+    """The ``model.keypoint_rescale`` that gives the views' 2D points, centred on their
+    visible mean, a median RMS radius of ``target_rms``.
+
+    The paper scales the centred 2D points of a dataset so that their extent is about
+    [-1, 1]; the median over views of the RMS radius is a robust form of that rule, the
+    same in any units. With ``calibrate`` (default: when the data has ``intrinsics``) the
+    points are calibrated with them first, as a perspective model sees them; an
+    orthographic model sees the points as they are, whatever intrinsics the data has."""
+    radius = view_radii(data, calibrate)
     if radius.size == 0:
         raise ValueError(f"{data.name or 'the training data'}: no view has two distinct visible "
                          "points, so the input scale cannot be set; set model.keypoint_rescale")
     return float(target_rms / np.median(radius))
+
+
+def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0) -> float:
+    """Do views that look alike differ in size? The median over views of the size ratio
+    (larger RMS radius over smaller) between a view and the view whose shape, centred and
+    scaled to unit RMS radius, is nearest to it (mean squared distance over the points
+    visible in both, at least half of them), among ``n_views`` views drawn with ``seed``.
+    Near 1 for a subject seen at one distance, whose views differ in size only with their
+    pose and viewpoint, which also change their shape (the development suite's sets:
+    1.01-1.07); about 1.5 for people at distances 0.5-2x apart. nan with fewer than 2
+    usable views."""
+    kp, vis = np.asarray(data.kp, np.float64), np.asarray(data.vis, np.float64)
+    if len(data) > n_views:
+        pick = np.sort(np.random.default_rng(seed).choice(len(data), n_views, replace=False))
+        kp, vis = kp[pick], vis[pick]
+    count = vis.sum(1)
+    mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
+    centred = (kp - mean[:, None]) * vis[..., None]
+    radius = np.sqrt((centred**2).sum((1, 2)) / np.maximum(count, 1))
+    usable = (count >= 2) & np.isfinite(radius) & (radius > 0)
+    unit, vis, radius = centred[usable] / radius[usable, None, None], vis[usable], radius[usable]
+    if len(unit) < 2:
+        return float("nan")
+    nearest = np.zeros(len(unit), int)
+    for start in range(0, len(unit), 64):  # (64, M, K) at a time
+        both = vis[start:start + 64, None] * vis[None]
+        sq = (((unit[start:start + 64, None] - unit[None]) ** 2).sum(-1) * both).sum(-1)
+        dist = np.where(both.sum(-1) >= 0.5 * vis.shape[1], sq / np.maximum(both.sum(-1), 1),
+                        np.inf)
+        rows = np.arange(len(dist))
+        dist[rows, start + rows] = np.inf  # not itself
+        nearest[start:start + 64] = dist.argmin(1)
+    return float(np.exp(np.median(np.abs(np.log(radius / radius[nearest])))))
 
 
 def check_spread(data: KeypointData, split: str) -> None:

@@ -23,6 +23,9 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   and the same training cameras, for data with far fewer points than the suite's;
 - ``deepmimic_v10`` and ``cmu131_v10`` (not in the default list): the same frames and split
   seen by 10 cameras per frame instead of 3;
+- ``cmu131_scaled`` and ``humans_scaled`` (not in the default list): every view, 2D points
+  and 3D truth, scaled by its own factor between 0.5 and 2 (log-uniform): people at
+  different distances;
 - ``cmu131_coco`` (not in the default list): CMU 131's frames and split with its people in
   COCO's 17 keypoints, the common 2D detectors' order (the limbs' joints are the same; the
   nose, eyes and ears are placed on the head by ``data.humans.coco_from_h36m``).
@@ -83,6 +86,11 @@ VIEWS = {"deepmimic_v10": ("deepmimic", 10), "cmu131_v10": ("cmu131", 10)}
 # Another joint order (not in the default list): CMU 131's people in COCO's 17 keypoints,
 # the common 2D detectors' (``humans.coco_from_h36m``: the face points placed on the head).
 ORDERS = {"cmu131_coco": "cmu131"}
+# People at different distances (not in the default list): every view of a set, 2D points
+# and 3D truth, scaled by its own factor, log-uniform in SCALE_RANGE (data seed 0), as the
+# people of photographs are seen at sizes a few times apart.
+SCALED = {"cmu131_scaled": "cmu131", "humans_scaled": "humans"}
+SCALE_RANGE = (0.5, 2.0)
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -151,7 +159,7 @@ def base_config() -> dict:
 def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
     """The flattened config a run of the suite is made with: ``base`` (``base_config``), the
     settings ``command`` passes, then the variant's overrides (the data paths, and the input
-    scale and handedness resolved from the data, left out)."""
+    scale, the scaling of each view and the handedness resolved from the data, left out)."""
     config = dict(base)
     config.update({"data.protocol": data["protocol"], "model.n_keypoints": data["n_keypoints"],
                    "seed": int(seed), "train.progress_bar": False,
@@ -166,6 +174,8 @@ def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
     if config.get("model.test_time_handedness_reference") == "auto":  # the same, with its
         config.pop("model.test_time_handedness_reference")  # one handedness setting
         config.pop("model.test_time_one_handedness", None)
+    if config.get("model.keypoint_scaling") == "auto":  # the same
+        config.pop("model.keypoint_scaling")
     return config
 
 
@@ -191,15 +201,16 @@ def make_data(name: str, data_root: str, out: str) -> dict:
     paths = {s: os.path.join(out, "data", f"{name}_{s}.json") for s in ("train", "test")}
     info_path = os.path.join(out, "data", f"{name}.json")
     if not all(os.path.exists(p) for p in (info_path, *paths.values())):
-        if name == "humans":
+        base = SCALED.get(name, name)
+        if base == "humans":
             train, test = load_splits(humans_config.get_config().data)
             protocol = "up3d"
         else:
-            full, points = SUBSETS.get(name, (name, None))
+            full, points = SUBSETS.get(base, (base, None))
             full, views = VIEWS.get(full, (full, 3))
             full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
-            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS}:
+            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -215,10 +226,12 @@ def make_data(name: str, data_root: str, out: str) -> dict:
                 hold_out=MOCAP.get(full, "blocks"), n_blocks=5)
             if points is not None:
                 x = x[:, list(points)]
-            if name in ORDERS:
+            if base in ORDERS:
                 x = humans.coco_from_h36m(x).astype(x.dtype)
             train, test = importers.views_from_sequence(x, seed=0, name=name, **kw)
             protocol = "default"
+        if name in SCALED:
+            train, test = (_scaled(d, seed) for d, seed in ((train, 0), (test, 1)))
         os.makedirs(os.path.dirname(info_path), exist_ok=True)
         for split, data in (("train", train), ("test", test)):
             json_dataset.save(data, paths[split])
@@ -228,6 +241,19 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             json.dump(info, f)
     with open(info_path) as f:
         return dict(json.load(f), **paths)
+
+
+def _scaled(data, seed: int):
+    """``data`` with each view's 2D points and 3D truth times its own factor, log-uniform in
+    ``SCALE_RANGE``."""
+    import dataclasses
+
+    import numpy as np
+
+    low, high = np.log(SCALE_RANGE)
+    s = np.exp(np.random.default_rng(seed).uniform(low, high, len(data)))[:, None, None]
+    return dataclasses.replace(data, kp=(data.kp * s).astype(data.kp.dtype),
+                               kp3d=(data.kp3d * s).astype(data.kp3d.dtype))
 
 
 def run_config(name: str, seed: int):
