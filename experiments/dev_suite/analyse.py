@@ -790,8 +790,11 @@ def _each_run(columns: list[str], fn) -> None:
     for run in FLAGS.runs:
         try:
             values = " | ".join(f"{v:.4f}" for v in np.atleast_1d(fn(run)))
-        except FileNotFoundError:  # the committed runs keep no checkpoints
-            values = "no checkpoint (train it again with suite.py)"
+        except FileNotFoundError as err:  # the committed runs keep no checkpoints
+            missing = err.filename or str(err)
+            values = ("no checkpoint (train it again with suite.py)"
+                      if not os.path.isdir(os.path.join(run, "checkpoints"))
+                      else f"missing {missing} (--out: the suite's output folder)")
         print(f"| {os.path.relpath(run, FLAGS.out)} | {values} |")
 
 
