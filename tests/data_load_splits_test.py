@@ -1,5 +1,7 @@
 """config.data -> splits for every source, with the default config's sections."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -149,6 +151,34 @@ def test_each_view_is_scaled_by_its_own_size_when_alike_views_differ_in_size():
     assert train.resolve_keypoint_scaling(c, far_and_near).model.keypoint_scaling == "global"
     c.model.keypoint_scaling = "per_view"
     assert train.resolve_keypoint_scaling(c, people) is c
+
+
+def test_coco_detections_of_people_at_different_distances_resolve_both_settings(tmp_path):
+    """People photographed at different distances, as a detector's COCO file gives them
+    (COCO's 17 keypoints, image coordinates: y down, pixels, hidden points v=0), read by
+    the importer: ``configs/own_json.py``'s "auto" settings take the coco body's handedness
+    and scale each view by its own size."""
+    from c3dpo_jax import train
+    from c3dpo_jax.data import humans, importers, json_dataset
+
+    people = humans.make_split(40, views_per_pose=10, seed=2)
+    rng = np.random.default_rng(1)
+    size = np.exp(rng.uniform(np.log(60.0), np.log(240.0), len(people)))  # pixels per metre
+    # The camera turned upside down about its axis: image rows grow downwards.
+    xy = -humans.coco_from_h36m(people.kp3d)[..., :2] * size[:, None, None] + [320.0, 240.0]
+    vis = np.concatenate([np.repeat(people.vis[:, 10:11], 5, 1),
+                          people.vis[:, [11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3]]], 1)
+    annotations = [{"image_id": i, "category_id": 1, "keypoints": np.concatenate(
+        [xy[i], 2 * vis[i, :, None]], 1).reshape(-1).tolist()} for i in range(len(xy))]
+    path = tmp_path / "person_keypoints.json"
+    path.write_text(json.dumps({"annotations": annotations}))
+    importers.main(["coco", str(path), "--out", str(tmp_path / "coco.json")])
+    data = json_dataset.load(str(tmp_path / "coco.json"))
+    c = own_json.get_config()
+    c.model.n_keypoints = 17
+    got = train.resolve_from_data(c, data).model
+    assert got.keypoint_scaling == "per_view"
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("coco", True)
 
 
 def test_handedness_from_a_body_whose_projections_fit_the_training_views():
