@@ -120,6 +120,9 @@ def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
     return float(target_rms / np.median(radius))
 
 
+ALIKE_CHUNK = 4_000_000  # view pairs x points compared at once by alike_view_size_ratio
+
+
 def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0) -> float:
     """Do views that look alike differ in size? The median over views of the size ratio
     (larger RMS radius over smaller) between a view and the view whose shape, centred and
@@ -142,14 +145,15 @@ def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0
     if len(unit) < 2:
         return float("nan")
     nearest = np.zeros(len(unit), int)
-    for start in range(0, len(unit), 64):  # (64, M, K) at a time
-        both = vis[start:start + 64, None] * vis[None]
-        sq = (((unit[start:start + 64, None] - unit[None]) ** 2).sum(-1) * both).sum(-1)
+    step = max(1, ALIKE_CHUNK // (len(unit) * unit.shape[1]))  # (step, M, K) arrays at a time
+    for start in range(0, len(unit), step):
+        both = vis[start:start + step, None] * vis[None]
+        sq = (((unit[start:start + step, None] - unit[None]) ** 2).sum(-1) * both).sum(-1)
         dist = np.where(both.sum(-1) >= 0.5 * vis.shape[1], sq / np.maximum(both.sum(-1), 1),
                         np.inf)
         rows = np.arange(len(dist))
         dist[rows, start + rows] = np.inf  # not itself
-        nearest[start:start + 64] = dist.argmin(1)
+        nearest[start:start + step] = dist.argmin(1)
     return float(np.exp(np.median(np.abs(np.log(radius / radius[nearest])))))
 
 
