@@ -356,6 +356,10 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
                          "was not resolved: the network would see zeros. Resolve it first "
                          "(train.resolve_input_scale(config, train_data), as "
                          "train_and_evaluate does; a loaded model has it)")
+    if cfg.keypoint_scaling == "auto":
+        raise ValueError("model.keypoint_scaling='auto' means 'from the training data' and was "
+                         "not resolved (train.resolve_keypoint_scaling(config, train_data), as "
+                         "train_and_evaluate does; a loaded model has it)")
     kp = jnp.where(vis[:, None] > 0, kp, 0.0)
     if cfg.projection_type == "perspective":
         if intrinsics is None:
@@ -366,10 +370,6 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
         rescale=cfg.keypoint_rescale, root_joint=cfg.root_joint,
     )
     scale = jnp.asarray(cfg.keypoint_rescale, kp_norm.dtype)
-    if cfg.keypoint_scaling == "auto":
-        raise ValueError("model.keypoint_scaling='auto' means 'from the training data' and was "
-                         "not resolved (train.resolve_keypoint_scaling(config, train_data), as "
-                         "train_and_evaluate does; a loaded model has it)")
     if cfg.keypoint_scaling == "per_view":
         centred = kp_norm - geometry.masked_mean(kp_norm, vis)[None]  # to_root: not centred
         radius = jnp.sqrt(geometry.masked_mean(jnp.sum(centred**2, -1), vis))

@@ -402,16 +402,17 @@ ALIKE_SIZE_RATIO = 1.18
 
 def resolve_keypoint_scaling(config, train_data: KeypointData, saved: dict | None = None):
     """``model.keypoint_scaling = "auto"`` means "from the data": a copy of ``config`` with
-    the value a saved config holds, else "per_view" for an orthographic model whose training
+    the value a saved config holds ("global" for one that predates the option), else
+    "per_view" for an orthographic model whose training
     views that look alike differ in size by more than ``ALIKE_SIZE_RATIO`` (subjects at
     different distances), else "global"; other values are returned unchanged."""
     if config.model.get("keypoint_scaling") != "auto":
         return config
     config = config.copy_and_resolve_references()
-    before = (saved or {}).get("model", {}).get("keypoint_scaling", "auto")
-    if before != "auto":
-        config.model.keypoint_scaling = before
-        return config
+    if saved and "model" in saved:  # a run made before the option had one input scale
+        config.model.keypoint_scaling = saved["model"].get("keypoint_scaling", "global")
+        if config.model.keypoint_scaling != "auto":
+            return config
     config.model.keypoint_scaling = "global"
     if config.model.projection_type != "orthographic":
         return config

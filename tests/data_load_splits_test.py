@@ -129,7 +129,8 @@ def test_alike_view_size_ratio_compares_each_view_with_the_one_most_like_it():
 def test_each_view_is_scaled_by_its_own_size_when_alike_views_differ_in_size():
     """``keypoint_scaling="auto"``: views of people at one distance keep one input scale;
     the same views each scaled by a factor 0.5-2x apart get "per_view"; a perspective model,
-    a value that is not "auto" and a saved config's value are kept."""
+    a value that is not "auto" and a saved config's value are kept, "global" for a saved
+    config that predates the option."""
     from c3dpo_jax import train
     from c3dpo_jax.data import alike_view_size_ratio, humans
 
@@ -146,6 +147,9 @@ def test_each_view_is_scaled_by_its_own_size_when_alike_views_differ_in_size():
     assert c.model.keypoint_scaling == "auto"  # a copy
     saved = {"model": {"keypoint_scaling": "global"}}
     assert train.resolve_keypoint_scaling(c, far_and_near, saved).model.keypoint_scaling == (
+        "global")
+    older = {"model": {"n_keypoints": 17}}  # a run made before the option: one input scale
+    assert train.resolve_keypoint_scaling(c, far_and_near, older).model.keypoint_scaling == (
         "global")
     c.model.projection_type = "perspective"
     assert train.resolve_keypoint_scaling(c, far_and_near).model.keypoint_scaling == "global"
