@@ -403,9 +403,9 @@ ALIKE_SIZE_RATIO = 1.18
 def resolve_keypoint_scaling(config, train_data: KeypointData, saved: dict | None = None):
     """``model.keypoint_scaling = "auto"`` means "from the data": a copy of ``config`` with
     the value a saved config holds ("global" for one that predates the option), else
-    "per_view" for an orthographic model whose training
-    views that look alike differ in size by more than ``ALIKE_SIZE_RATIO`` (subjects at
-    different distances), else "global"; other values are returned unchanged."""
+    "per_view" for an orthographic model whose training views that look alike differ in
+    size by more than ``ALIKE_SIZE_RATIO`` (subjects at different distances), else
+    "global"; other values are returned unchanged."""
     if config.model.get("keypoint_scaling") != "auto":
         return config
     config = config.copy_and_resolve_references()
