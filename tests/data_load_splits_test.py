@@ -115,15 +115,17 @@ def test_alike_view_size_ratio_compares_each_view_with_the_one_most_like_it():
     from c3dpo_jax.data import KeypointData, alike_view_size_ratio
 
     rng = np.random.default_rng(0)
-    shapes = rng.normal(size=(30, 12, 2))
-    factors = rng.uniform(1.1, 3.0, 30)
-    kp = np.stack([shapes, shapes * factors[:, None, None] + 5.0], 1).reshape(60, 12, 2)
-    vis = np.ones((60, 12))
-    vis[1::2, 0] = 0  # hidden in the scaled copy
-    assert alike_view_size_ratio(KeypointData(kp=kp, vis=vis)) == pytest.approx(
-        np.median(factors), rel=0.05)
-    same = np.repeat(shapes, 2, axis=0)
-    assert alike_view_size_ratio(KeypointData(kp=same, vis=vis)) == pytest.approx(1.0, abs=0.05)
+    for k in (12, 100):  # 100: more points than the shapes are compared on
+        shapes = rng.normal(size=(30, k, 2))
+        factors = rng.uniform(1.1, 3.0, 30)
+        kp = np.stack([shapes, shapes * factors[:, None, None] + 5.0], 1).reshape(60, k, 2)
+        vis = np.ones((60, k))
+        vis[1::2, 0] = 0  # hidden in the scaled copy
+        assert alike_view_size_ratio(KeypointData(kp=kp, vis=vis)) == pytest.approx(
+            np.median(factors), rel=0.05)
+        same = np.repeat(shapes, 2, axis=0)
+        assert alike_view_size_ratio(KeypointData(kp=same, vis=vis)) == pytest.approx(
+            1.0, abs=0.05)
 
 
 def test_each_view_is_scaled_by_its_own_size_when_alike_views_differ_in_size():

@@ -121,13 +121,15 @@ def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
 
 
 ALIKE_CHUNK = 4_000_000  # view pairs x points compared at once by alike_view_size_ratio
+ALIKE_POINTS = 64  # the most points it compares shapes on (the sizes use every point)
 
 
 def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0) -> float:
     """Do views that look alike differ in size? The median over views of the size ratio
     (larger RMS radius over smaller) between a view and the view whose shape, centred and
     scaled to unit RMS radius, is nearest to it (mean squared distance over the points
-    visible in both, at least half of them), among ``n_views`` views drawn with ``seed``.
+    visible in both, at least half of them; ``ALIKE_POINTS`` evenly spaced points of larger
+    sets), among ``n_views`` views drawn with ``seed``.
     Near 1 for a subject seen at one distance, whose views differ in size only with their
     pose and viewpoint, which also change their shape (the development suite's sets:
     1.01-1.07); about 1.5 for people at distances 0.5-2x apart. nan with fewer than 2
@@ -144,6 +146,9 @@ def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0
     unit, vis, radius = centred[usable] / radius[usable, None, None], vis[usable], radius[usable]
     if len(unit) < 2:
         return float("nan")
+    if unit.shape[1] > ALIKE_POINTS:  # shapes compared on evenly spaced points only
+        keep = np.linspace(0, unit.shape[1] - 1, ALIKE_POINTS).round().astype(int)
+        unit, vis = unit[:, keep], vis[:, keep]
     nearest = np.zeros(len(unit), int)
     step = max(1, ALIKE_CHUNK // (len(unit) * unit.shape[1]))  # (step, M, K) arrays at a time
     for start in range(0, len(unit), step):
