@@ -172,8 +172,7 @@ def test_coco_detections_of_people_at_different_distances_resolve_both_settings(
     size = np.exp(rng.uniform(np.log(60.0), np.log(240.0), len(people)))  # pixels per metre
     # The camera turned upside down about its axis: image rows grow downwards.
     xy = -humans.coco_from_h36m(people.kp3d)[..., :2] * size[:, None, None] + [320.0, 240.0]
-    vis = np.concatenate([np.repeat(people.vis[:, 10:11], 5, 1),
-                          people.vis[:, [11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3]]], 1)
+    vis = humans.coco_visibility_from_h36m(people.vis)
     annotations = [{"image_id": i, "category_id": 1, "keypoints": np.concatenate(
         [xy[i], 2 * vis[i, :, None]], 1).reshape(-1).tolist()} for i in range(len(xy))]
     path = tmp_path / "person_keypoints.json"
@@ -211,8 +210,7 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("h36m", True)
     assert c.model.test_time_handedness_reference == "auto"  # a copy
     # The same people in COCO's order (the detectors'): the coco body fits, the h36m one not.
-    vis = np.concatenate([np.repeat(people.vis[:, 10:11], 5, 1),  # the face: the head's
-                          people.vis[:, [11, 14, 12, 15, 13, 16, 4, 1, 5, 2, 6, 3]]], 1)
+    vis = humans.coco_visibility_from_h36m(people.vis)  # the face: the head's
     coco = type(people)(kp=humans.coco_from_h36m(people.kp3d)[..., :2], vis=vis)
     coco_body = np.asarray(model.handedness_reference("coco"))
     assert train.body_fit_2d(coco_body, coco) < 0.5 * train.BODY_FIT_2D

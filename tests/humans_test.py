@@ -72,7 +72,8 @@ def test_coco_order_keeps_the_limbs_and_puts_a_face_on_the_front_of_the_head():
     """``coco_from_h36m``: COCO's shoulders to ankles are the same joints (left before
     right); the nose is in front of the neck, above it, between the eyes, the left eye and
     ear on the body's left; a rotated and shifted body gets the rotated and shifted points
-    (checked with scipy's rotations), a mirrored one the mirrored face."""
+    (checked with scipy's rotations), a mirrored one the mirrored face; the face points
+    are shown where the head is."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(0)
@@ -94,6 +95,11 @@ def test_coco_order_keeps_the_limbs_and_puts_a_face_on_the_front_of_the_head():
         humans.coco_from_h36m(np.einsum("pij,pnj->pni", rot, pos) + shift),
         np.einsum("pij,pnj->pni", rot, coco) + shift, atol=1e-12)
     swap = [0, 4, 5, 6, 1, 2, 3, 7, 8, 9, 10, 14, 15, 16, 11, 12, 13]  # left <-> right
+    vis = np.ones((6, 17))
+    vis[:, [10, 13]] = 0  # the head and the left wrist hidden
+    got = humans.coco_visibility_from_h36m(vis)
+    assert got[:, :5].sum() == 0 and got[:, humans.COCO_JOINT_NAMES.index("l_wrist")].sum() == 0
+    assert got.sum() == 6 * 11
     mirrored = humans.coco_from_h36m(pos[:, swap] * [-1, 1, 1])
     np.testing.assert_allclose(mirrored[:, [0, 2, 1, 4, 3]], coco[:, :5] * [-1, 1, 1],
                                atol=1e-12)

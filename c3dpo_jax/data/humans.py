@@ -122,6 +122,13 @@ def coco_from_h36m(joints: np.ndarray) -> np.ndarray:
     return np.concatenate([face, joints[..., list(_COCO_BODY), :]], axis=-2)
 
 
+def coco_visibility_from_h36m(vis: np.ndarray) -> np.ndarray:
+    """(..., 17) visibility flags in Human3.6M's order -> COCO's (``coco_from_h36m``): the
+    limbs' joints keep theirs, the nose, eyes and ears take the head's (joint 10)."""
+    vis = np.asarray(vis)
+    return np.concatenate([np.repeat(vis[..., 10:11], 5, -1), vis[..., list(_COCO_BODY)]], -1)
+
+
 def mean_pose(n: int = 2000, seed: int = 0, order: str = "h36m") -> np.ndarray:
     """(17, 3) the generator's average body: the mean joint positions of ``n`` random
     people in random poses, each centred (y up, facing +z, the left side at +x; the rest

@@ -23,12 +23,13 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   and the same training cameras, for data with far fewer points than the suite's;
 - ``deepmimic_v10`` and ``cmu131_v10`` (not in the default list): the same frames and split
   seen by 10 cameras per frame instead of 3;
-- ``cmu131_scaled`` and ``humans_scaled`` (not in the default list): every view, 2D points
-  and 3D truth, scaled by its own factor between 0.5 and 2 (log-uniform): people at
-  different distances;
-- ``cmu131_coco`` (not in the default list): CMU 131's frames and split with its people in
-  COCO's 17 keypoints, the common 2D detectors' order (the limbs' joints are the same; the
-  nose, eyes and ears are placed on the head by ``data.humans.coco_from_h36m``).
+- ``cmu131_scaled``, ``humans_scaled`` and ``humans_coco_scaled`` (not in the default
+  list): every view, 2D points and 3D truth, scaled by its own factor between 0.5 and 2
+  (log-uniform): people at different distances;
+- ``cmu131_coco`` and ``humans_coco`` (not in the default list): CMU 131's frames and
+  split, and the built-in humans, with the people in COCO's 17 keypoints, the common 2D
+  detectors' order (the limbs' joints are the same; the nose, eyes and ears are placed on
+  the head by ``data.humans.coco_from_h36m``).
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -83,13 +84,15 @@ SUBSETS = {"cmu131_k8": ("cmu131", (0, 2, 3, 5, 6, 10, 13, 16)),  # pelvis, knee
 # More cameras (not in the default list): a motion-capture set's frames, split and held-out
 # frames seen by 10 cameras per frame instead of 3 (is the 3-camera protocol what bounds it?).
 VIEWS = {"deepmimic_v10": ("deepmimic", 10), "cmu131_v10": ("cmu131", 10)}
-# Another joint order (not in the default list): CMU 131's people in COCO's 17 keypoints,
-# the common 2D detectors' (``humans.coco_from_h36m``: the face points placed on the head).
-ORDERS = {"cmu131_coco": "cmu131"}
+# Another joint order (not in the default list): CMU 131's people and the built-in humans in
+# COCO's 17 keypoints, the common 2D detectors' (``humans.coco_from_h36m``: the face points
+# placed on the head).
+ORDERS = {"cmu131_coco": "cmu131", "humans_coco": "humans"}
 # People at different distances (not in the default list): every view of a set, 2D points
 # and 3D truth, scaled by its own factor, log-uniform in SCALE_RANGE (data seed 0), as the
 # people of photographs are seen at sizes a few times apart.
-SCALED = {"cmu131_scaled": "cmu131", "humans_scaled": "humans"}
+SCALED = {"cmu131_scaled": "cmu131", "humans_scaled": "humans",
+          "humans_coco_scaled": "humans_coco"}
 SCALE_RANGE = (0.5, 2.0)
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
@@ -202,8 +205,10 @@ def make_data(name: str, data_root: str, out: str) -> dict:
     info_path = os.path.join(out, "data", f"{name}.json")
     if not all(os.path.exists(p) for p in (info_path, *paths.values())):
         base = SCALED.get(name, name)
-        if base == "humans":
+        if ORDERS.get(base, base) == "humans":
             train, test = load_splits(humans_config.get_config().data)
+            if base in ORDERS:
+                train, test = (_coco_people(d) for d in (train, test))
             protocol = "up3d"
         else:
             full, points = SUBSETS.get(base, (base, None))
@@ -241,6 +246,19 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             json.dump(info, f)
     with open(info_path) as f:
         return dict(json.load(f), **paths)
+
+
+def _coco_people(data):
+    """The built-in humans' views in COCO's joint order: the 3D truth through
+    ``humans.coco_from_h36m``, the 2D points its projection (the generator's views are
+    orthographic and noiseless), each face point shown where the head is."""
+    import dataclasses
+
+    from c3dpo_jax.data import humans
+
+    kp3d = humans.coco_from_h36m(data.kp3d).astype(data.kp3d.dtype)
+    return dataclasses.replace(data, kp=kp3d[..., :2].copy(), kp3d=kp3d,
+                               vis=humans.coco_visibility_from_h36m(data.vis))
 
 
 def _scaled(data, seed: int):
