@@ -68,6 +68,9 @@ class Prediction(Mapping):
         for perspective models).
       kp_norm: (N, 2) the network's normalised input.
       kp_mean: (2,) the centre removed from the input (calibrated for perspective).
+      kp_scale: () the factor the centred input was multiplied by (``keypoint_rescale``,
+        over the view's RMS radius with ``keypoint_scaling="per_view"``): the normalised
+        frame's units are the input's times it.
       dist_sq: (N,) squared distance of each reprojected point to the normalised input,
         unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
     """
@@ -83,6 +86,7 @@ class Prediction(Mapping):
     kp_reprojected: Leaf
     kp_norm: Leaf
     kp_mean: Leaf
+    kp_scale: Leaf
     dist_sq: Leaf
 
     def __getitem__(self, name: str) -> Leaf:
@@ -772,5 +776,6 @@ def forward_eval(
         kp_reprojected=reproj_image,
         kp_norm=kp_norm,
         kp_mean=centre,
+        kp_scale=scale,
         dist_sq=dist_sq,
     )

@@ -216,6 +216,7 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     shift = jnp.asarray([[[4.0, -2.0]]])
     a, b = _eval(cfg, variables, kp, vis), _eval(cfg, variables, kp * s + shift, vis)
     np.testing.assert_allclose(b["shape_canonical"], a["shape_canonical"], atol=1e-5)
+    np.testing.assert_allclose(b["kp_scale"], a["kp_scale"] / np.asarray(s)[:, 0, 0], rtol=1e-5)
     shown = np.asarray(vis)[..., None]  # hidden points' values are masked by the network
     np.testing.assert_allclose(b["kp_norm"] * shown, a["kp_norm"] * shown, atol=1e-5)
     expected = np.asarray(a["shape_image_coord"]) * np.asarray(s)

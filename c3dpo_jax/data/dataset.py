@@ -85,6 +85,17 @@ def fingerprint(data: KeypointData) -> str:
     return digest.hexdigest()
 
 
+def _centred_views(kp: np.ndarray, vis: np.ndarray):
+    """``(centred, radius, usable)``: each view's points (M, N, 2) minus its visible mean,
+    hidden points zeroed; the RMS radius (M,) of its visible points about that mean; and
+    whether the view has two or more visible points and a finite, positive radius."""
+    count = vis.sum(1)
+    mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
+    centred = (kp - mean[:, None]) * vis[..., None]
+    radius = np.sqrt((centred**2).sum((1, 2)) / np.maximum(count, 1))
+    return centred, radius, (count > 1) & np.isfinite(radius) & (radius > 0)
+
+
 def view_radii(data: KeypointData, calibrate: bool | None = None) -> np.ndarray:
     """The RMS radius of each view's visible 2D points about their mean, for the views with
     two or more visible points and a finite, positive radius. With ``calibrate`` (default:
@@ -96,11 +107,8 @@ def view_radii(data: KeypointData, calibrate: bool | None = None) -> np.ndarray:
         homo = np.concatenate([kp, np.ones_like(kp[..., :1])], -1)
         cal = np.einsum("mij,mnj->mni", np.linalg.inv(data.intrinsics.astype(np.float64)), homo)
         kp = cal[..., :2] / cal[..., 2:]
-    count = vis.sum(1)
-    mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
-    sq = np.einsum("mn,mn->m", vis, ((kp - mean[:, None]) ** 2).sum(-1))
-    radius = np.sqrt(sq[count > 1] / count[count > 1])
-    return radius[np.isfinite(radius) & (radius > 0)]
+    _, radius, usable = _centred_views(kp, vis)
+    return radius[usable]
 
 
 def auto_keypoint_rescale(data: KeypointData, target_rms: float = 1.0,
@@ -138,11 +146,7 @@ def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0
     if len(data) > n_views:
         pick = np.sort(np.random.default_rng(seed).choice(len(data), n_views, replace=False))
         kp, vis = kp[pick], vis[pick]
-    count = vis.sum(1)
-    mean = np.einsum("mn,mnc->mc", vis, kp) / np.maximum(count, 1)[:, None]
-    centred = (kp - mean[:, None]) * vis[..., None]
-    radius = np.sqrt((centred**2).sum((1, 2)) / np.maximum(count, 1))
-    usable = (count >= 2) & np.isfinite(radius) & (radius > 0)
+    centred, radius, usable = _centred_views(kp, vis)
     unit, vis, radius = centred[usable] / radius[usable, None, None], vis[usable], radius[usable]
     if len(unit) < 2:
         return float("nan")

@@ -40,7 +40,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import literal, override, run_main  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, model, train  # noqa: E402
+from c3dpo_jax import baselines, evaluation, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -69,26 +69,12 @@ def _oracle(shapes: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.minimum(*errs)
 
 
-def _input_factor(spec, data) -> np.ndarray:
-    """(M, 1, 1) the factor each view's centred points were multiplied by before Phi:
-    ``keypoint_rescale``, over the view's RMS radius with per-view scaling (the model's
-    rule, ``model._normalised_input``, in numpy)."""
-    factor = np.full((len(data), 1, 1), spec.model.keypoint_rescale)
-    if spec.model.keypoint_scaling == "per_view":
-        kp, vis = data.kp.astype(np.float64), data.vis.astype(np.float64)[..., None]
-        mean = (kp * vis).sum(1, keepdims=True) / np.maximum(vis.sum(1, keepdims=True), 1)
-        sq = (((kp - mean) ** 2).sum(-1, keepdims=True) * vis).sum(1, keepdims=True)
-        radius = np.sqrt(sq / np.maximum(vis.sum(1, keepdims=True), 1)) * factor
-        factor = factor / np.maximum(radius, model.MIN_VIEW_RADIUS)
-    return factor
-
-
-def measure(pred: dict, data, views_per_frame: int, protocol: str, factor) -> dict:
+def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
     res = evaluation.evaluate(pred["shape_image_coord"], data, protocol)
     mask = data.vis
     per = evaluation.mpjpe(evaluation.center_depth(pred["shape_image_coord"], mask),
                            evaluation.center_depth(data.kp3d, mask), mask)
-    canon = pred["shape_canonical"] / factor  # in the data's units
+    canon = pred["shape_canonical"] / pred["kp_scale"][:, None, None]  # the data's units
     canon = canon - canon.mean(1, keepdims=True)
     out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
                sign_agreement=float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
@@ -141,7 +127,7 @@ def main(argv):
         for split, data in (("train", train_sub), ("test", test_data)):
             pred = train.predict(variables, data, spec.model)
             row = dict(step=record["step"], split=split,
-                       **measure(pred, data, vpf, info["protocol"], _input_factor(spec, data)))
+                       **measure(pred, data, vpf, info["protocol"]))
             _write_record(path, row)
             print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in row.items()), flush=True)
