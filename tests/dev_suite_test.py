@@ -401,3 +401,60 @@ out = [analyse.relift_choice(lift, pred, truth, 'deepmimic'), float(turn.mean())
     assert abs(truer - turned_share) < 1e-12
     assert picked < 1e-6 and oracle < 1e-6 and agree == 1.0
     assert abs(views_turned - turned_share) < 1e-12
+
+
+def test_human_point_sets_take_the_joints_they_name_and_frames_have_their_views():
+    """suite._human_points: ``humans_limbs`` is the 12 limb joints of the Human3.6M-order
+    views, ``humans_coco_torso`` the COCO-order people (``_coco_people``) followed by the
+    pelvis, spine, thorax and head top, 2D points and truth alike, each point's visibility
+    its joint's; views_per_frame groups each suite set's consecutive views of one frame."""
+    code = """
+import numpy as np
+from c3dpo_jax.data import KeypointData
+rng = np.random.default_rng(0)
+kp3d = rng.normal(size=(6, 17, 3)).astype(np.float32)
+vis = (rng.uniform(size=(6, 17)) > 0.3).astype(np.float32)
+data = KeypointData(kp=kp3d[..., :2].copy(), vis=vis, kp3d=kp3d)
+limbs, torso, coco = (suite._human_points(data, "limbs"), suite._human_points(data, "coco_torso"),
+                      suite._coco_people(data))
+j, t = list(suite.LIMBS), list(suite.TORSO)
+out = [limbs.n_keypoints, torso.n_keypoints,
+       bool((limbs.kp3d == kp3d[:, j]).all() and (limbs.kp == kp3d[:, j, :2]).all()
+            and (limbs.vis == vis[:, j]).all()),
+       bool((torso.kp3d[:, :17] == coco.kp3d).all() and (torso.kp3d[:, 17:] == kp3d[:, t]).all()
+            and (torso.kp == torso.kp3d[..., :2]).all() and (torso.vis[:, 17:] == vis[:, t]).all()
+            and (torso.vis[:, :17] == coco.vis).all()),
+       [suite.views_per_frame(n) for n in ("humans", "humans_coco_torso", "humans_coco_scaled",
+                                           "drink", "face_k8", "cmu131_coco", "deepmimic_v10",
+                                           "cmu131_k12")]]
+"""
+    n_limbs, n_torso, limbs_ok, torso_ok, vpf = _suite_value(
+        "suite", f"(exec({code!r}, globals()), out)[1]")
+    assert (n_limbs, n_torso) == (12, 21) and limbs_ok and torso_ok
+    assert vpf == [30, 30, 30, 10, 10, 3, 10, 3]
+
+
+def test_diagnostics_take_canonical_shapes_from_the_models_own_handedness():
+    """diagnose.measure: a view that the inference mirrors (a body's handedness) does not
+    count as canonical spread between the views of a frame when the model's own inference
+    (``own``) is given; without it, it does."""
+    code = """
+import numpy as np
+from c3dpo_jax.data import KeypointData
+rng = np.random.default_rng(0)
+frames = rng.normal(size=(2, 1, 6, 3))
+canon = np.repeat(frames, 3, axis=1).reshape(6, 6, 3)  # 2 frames x 3 views, one shape each
+data = KeypointData(kp=canon[..., :2].astype(np.float32), vis=np.ones((6, 6), np.float32),
+                    kp3d=canon.astype(np.float32))
+own = dict(shape_canonical=canon, shape_image_coord=canon, kp_reprojected=canon[..., :2],
+           kp_scale=np.ones(6), alpha=np.zeros((6, 2)))
+mirrored = canon.copy()
+mirrored[1, :, 2] *= -1  # one view given its mirror image
+pred = dict(own, shape_canonical=mirrored)
+out = [diagnose.measure(pred, data, 3, "default", own)["canon_view_spread"],
+       diagnose.measure(pred, data, 3, "default")["canon_view_spread"],
+       diagnose.measure(pred, data, 3, "default", own)["sign_agreement_own"]]
+"""
+    with_own, without, sign_own = _suite_value(
+        "diagnose", f"(exec({code!r}, globals()), out)[1]")
+    assert with_own < 1e-6 < 0.05 < without and sign_own == 1.0

@@ -29,7 +29,10 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 - ``cmu131_coco`` and ``humans_coco`` (not in the default list): CMU 131's frames and
   split, and the built-in humans, with the people in COCO's 17 keypoints, the common 2D
   detectors' order (the limbs' joints are the same; the nose, eyes and ears are placed on
-  the head by ``data.humans.coco_from_h36m``).
+  the head by ``data.humans.coco_from_h36m``);
+- ``humans_limbs`` and ``humans_coco_torso`` (not in the default list): the built-in humans
+  with their 12 limb joints only, and in COCO's order with Human3.6M's pelvis, spine,
+  thorax and head top added (21 points): which points the humans in COCO's order lack.
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -94,6 +97,13 @@ ORDERS = {"cmu131_coco": "cmu131", "humans_coco": "humans"}
 SCALED = {"cmu131_scaled": "cmu131", "humans_scaled": "humans",
           "humans_coco_scaled": "humans_coco"}
 SCALE_RANGE = (0.5, 2.0)
+# The built-in humans with other points (not in the default list): which of COCO's points
+# the humans in its order lack: ``humans_limbs``, the 12 limb joints COCO shares with
+# Human3.6M (hips, knees, ankles, shoulders, elbows, wrists; Human3.6M's order);
+# ``humans_coco_torso``, COCO's 17 and Human3.6M's pelvis, spine, thorax and head top.
+LIMBS = (1, 2, 3, 4, 5, 6, 11, 12, 13, 14, 15, 16)
+TORSO = (0, 7, 8, 10)
+POINTS = {"humans_limbs": "limbs", "humans_coco_torso": "coco_torso"}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -205,17 +215,19 @@ def make_data(name: str, data_root: str, out: str) -> dict:
     info_path = os.path.join(out, "data", f"{name}.json")
     if not all(os.path.exists(p) for p in (info_path, *paths.values())):
         base = SCALED.get(name, name)
-        if ORDERS.get(base, base) == "humans":
+        if ORDERS.get(base, base) == "humans" or base in POINTS:
             train, test = load_splits(humans_config.get_config().data)
             if base in ORDERS:
                 train, test = (_coco_people(d) for d in (train, test))
+            elif base in POINTS:
+                train, test = (_human_points(d, POINTS[base]) for d in (train, test))
             protocol = "up3d"
         else:
             full, points = SUBSETS.get(base, (base, None))
             full, views = VIEWS.get(full, (full, 3))
             full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
-            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED}:
+            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -259,6 +271,36 @@ def _coco_people(data):
     kp3d = humans.coco_from_h36m(data.kp3d).astype(data.kp3d.dtype)
     return dataclasses.replace(data, kp=kp3d[..., :2].copy(), kp3d=kp3d,
                                vis=humans.coco_visibility_from_h36m(data.vis))
+
+
+def _human_points(data, points: str):
+    """The built-in humans' views (Human3.6M's order) with ``POINTS``' other points:
+    "limbs", the joints ``LIMBS``; "coco_torso", ``_coco_people``'s 17 and the joints
+    ``TORSO``."""
+    import dataclasses
+
+    import numpy as np
+
+    if points == "limbs":
+        j = list(LIMBS)
+        return dataclasses.replace(data, kp=data.kp[:, j], kp3d=data.kp3d[:, j],
+                                   vis=data.vis[:, j])
+    coco = _coco_people(data)
+    t = list(TORSO)
+    return dataclasses.replace(coco, kp=np.concatenate([coco.kp, data.kp[:, t]], 1),
+                               kp3d=np.concatenate([coco.kp3d, data.kp3d[:, t]], 1),
+                               vis=np.concatenate([coco.vis, data.vis[:, t]], 1))
+
+
+def views_per_frame(name: str) -> int:
+    """How many consecutive views of a suite dataset show one frame (one pose)."""
+    base = SCALED.get(name, name)
+    if ORDERS.get(base, base) == "humans" or base in POINTS:
+        return 30  # configs/humans.py's views per pose
+    full = SUBSETS.get(base, (base, None))[0]
+    if full in VIEWS:
+        return VIEWS[full][1]
+    return 10 if ORDERS.get(full, full) in NRSFM else 3
 
 
 def _scaled(data, seed: int):
