@@ -76,13 +76,16 @@ def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig, 
     """Test metrics: MPJPE/stress when the split has 3D ground truth, and always the
     2D reprojection error of the visible points (the only score for 2D-only data) and,
     for single-class data, ``mirrored`` (``evaluation.mirrored_fraction``: how mixed the
-    handedness of the canonical shapes is, also without 3D ground truth)."""
+    handedness of the canonical shapes is, also without 3D ground truth; the model's own
+    shapes, before ``test_time_one_handedness`` gives every view one handedness, so that it
+    says what training learnt)."""
     pred = predict_split(variables, data, model_cfg, batch_size, eval_fn)
     # kp_reprojected is in the input's units (pixels for perspective models too).
     reproj = evaluation.reprojection_error(pred["kp_reprojected"], data)
     out = {"n_samples": len(data), "reprojection": reproj}
     if data.class_mask is None:  # one object class: one mean shape to compare handedness
-        out["mirrored"] = evaluation.mirrored_fraction(pred["shape_canonical"])
+        out["mirrored"] = evaluation.mirrored_fraction(
+            model.own_canonical(pred["shape_canonical"], pred["handedness_flipped"]))
     if data.kp3d is not None and protocol != "none":
         out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
     return out

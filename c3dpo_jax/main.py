@@ -120,9 +120,9 @@ def main(argv):
               "protocol); mpjpe_orig: the prediction as it is; stress: the error of the "
               "distances between points")
     if "mirrored" in results["final"]:
-        print("mirrored: the fraction of test views whose canonical shape has the other "
-              "handedness than most (0: one for all; about 0.5: a coin toss per view, "
-              "docs/data.md)")
+        print("mirrored: the fraction of test views whose canonical shape, as the model "
+              "lifts it before any handedness given at inference, has the other handedness "
+              "than most (0: one for all; about 0.5: a coin toss per view, docs/data.md)")
     if _MODE.value == "eval":  # after the table: a workdir it cannot write still shows it
         sys.stdout.flush()
         run_records.write_results(_WORKDIR.value, results)

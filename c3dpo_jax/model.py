@@ -73,6 +73,9 @@ class Prediction(Mapping):
         frame's units are the input's times it.
       dist_sq: (N,) squared distance of each reprojected point to the normalised input,
         unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
+      handedness_flipped: () 1 where ``test_time_one_handedness`` gave the view its mirror
+        image, else 0: ``shape_canonical`` with its third axis negated there is the model's
+        own canonical shape (``own_canonical``).
     """
 
     shape_image_coord: Leaf
@@ -88,6 +91,7 @@ class Prediction(Mapping):
     kp_mean: Leaf
     kp_scale: Leaf
     dist_sq: Leaf
+    handedness_flipped: Leaf
 
     def __getitem__(self, name: str) -> Leaf:
         if name not in _PREDICTION_FIELDS:
@@ -102,6 +106,14 @@ class Prediction(Mapping):
 
 
 _PREDICTION_FIELDS = tuple(f.name for f in dataclasses.fields(Prediction))
+
+
+def own_canonical(shape_canonical, handedness_flipped):
+    """The model's own canonical shapes ``(..., N, 3)``: ``Prediction.shape_canonical``
+    with the mirroring of ``test_time_one_handedness`` undone (``handedness_flipped``,
+    shape ``(...)``), numpy or jax arrays alike."""
+    flipped = handedness_flipped[..., None, None] > 0
+    return shape_canonical * (1.0 - 2.0 * (flipped & (np.arange(3) == 2)))
 
 
 class TrainRotations(NamedTuple):
@@ -624,7 +636,8 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     the camera-frame depth reflected about the translation's (``t``; an orthographic view's
     2D points unchanged), the canonical shape's third axis negated and the rotation
     conjugated by that reflection (``theta``'s first two components negated), so that
-    ``scale * x_canon @ rot.T + t`` is still ``x_cam``."""
+    ``scale * x_canon @ rot.T + t`` is still ``x_cam``. Also returns 1.0 where the view was
+    mirrored, else 0.0."""
     if reference is None:
         reference = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
     mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
@@ -632,7 +645,8 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
-    return x_cam, x_canon * flip[None], flip[:, None] * rot * flip[None], theta
+    return (x_cam, x_canon * flip[None], flip[:, None] * rot * flip[None], theta,
+            mirrored.astype(x_cam.dtype))
 
 
 # Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
@@ -747,12 +761,12 @@ def forward_eval(
     if cfg.test_time_turns > 1:
         x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, net, variables, kp_norm, vis, class_mask,
                                                  x_cam))
-    theta = phi_out["theta"]
+    theta, flipped = phi_out["theta"], jnp.zeros((), x_cam.dtype)
     if cfg.test_time_one_handedness:
         problem = handedness_problem(True, cfg.projection_type)
         if problem:
             raise ValueError(f"test_time_one_handedness=True ({problem})")
-        x_cam, x_canon, rot, theta = one_handedness(
+        x_cam, x_canon, rot, theta, flipped = one_handedness(
             net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask,
             handedness_reference(cfg.test_time_handedness_reference))
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
@@ -778,4 +792,5 @@ def forward_eval(
         kp_mean=centre,
         kp_scale=scale,
         dist_sq=dist_sq,
+        handedness_flipped=flipped,
     )

@@ -435,9 +435,10 @@ out = [limbs.n_keypoints, torso.n_keypoints,
 
 
 def test_diagnostics_take_canonical_shapes_from_the_models_own_handedness():
-    """diagnose.measure: a view that the inference mirrors (a body's handedness) does not
-    count as canonical spread between the views of a frame when the model's own inference
-    (``own``) is given; without it, it does."""
+    """diagnose.measure: a view that the inference mirrored (a body's handedness at
+    inference, ``handedness_flipped``) counts with the model's own canonical shape and depth
+    sign, so it is not spread between the views of a frame; the same mirrored shape not
+    flagged is."""
     code = """
 import numpy as np
 from c3dpo_jax.data import KeypointData
@@ -446,15 +447,17 @@ frames = rng.normal(size=(2, 1, 6, 3))
 canon = np.repeat(frames, 3, axis=1).reshape(6, 6, 3)  # 2 frames x 3 views, one shape each
 data = KeypointData(kp=canon[..., :2].astype(np.float32), vis=np.ones((6, 6), np.float32),
                     kp3d=canon.astype(np.float32))
-own = dict(shape_canonical=canon, shape_image_coord=canon, kp_reprojected=canon[..., :2],
-           kp_scale=np.ones(6), alpha=np.zeros((6, 2)))
 mirrored = canon.copy()
-mirrored[1, :, 2] *= -1  # one view given its mirror image
-pred = dict(own, shape_canonical=mirrored)
-out = [diagnose.measure(pred, data, 3, "default", own)["canon_view_spread"],
-       diagnose.measure(pred, data, 3, "default")["canon_view_spread"],
-       diagnose.measure(pred, data, 3, "default", own)["sign_agreement_own"]]
+mirrored[1, :, 2] *= -1  # one view given its mirror image, canonical shape and depth
+flags = np.zeros(6)
+pred = dict(shape_canonical=mirrored, shape_image_coord=mirrored, kp_reprojected=canon[..., :2],
+            kp_scale=np.ones(6), alpha=np.zeros((6, 2)), handedness_flipped=flags)
+flagged = diagnose.measure(dict(pred, handedness_flipped=np.eye(6)[1]), data, 3, "default")
+unflagged = diagnose.measure(pred, data, 3, "default")
+out = [flagged["canon_view_spread"], unflagged["canon_view_spread"],
+       flagged["sign_agreement_own"], flagged["sign_agreement"], unflagged["sign_agreement_own"]]
 """
-    with_own, without, sign_own = _suite_value(
+    flagged, unflagged, own, as_run, unflagged_own = _suite_value(
         "diagnose", f"(exec({code!r}, globals()), out)[1]")
-    assert with_own < 1e-6 < 0.05 < without and sign_own == 1.0
+    assert flagged < 1e-6 < 0.05 < unflagged
+    assert own == 1.0 and as_run == unflagged_own == 5 / 6

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from c3dpo_jax import losses, model
-from c3dpo_jax.data import synthetic
+from c3dpo_jax import evaluation, inference, losses, model
+from c3dpo_jax.data import KeypointData, synthetic
 
 CFG = model.ModelConfig(
     n_keypoints=8, shape_basis_size=3, n_fully_connected=16, n_layers=1,
@@ -450,6 +450,7 @@ def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_i
                     < _rotation_residual_numpy(x, centred_mean))
         assert mirrored == truth_mirrored[i]
         f = flip if mirrored else np.ones(3)
+        assert float(got[4][i]) == float(mirrored)  # the flag says which views were mirrored
         np.testing.assert_allclose(got[1][i], shapes[i] * f, atol=1e-5)
         np.testing.assert_allclose(got[2][i], f[:, None] * rots[i].as_matrix() * f, atol=1e-5)
         np.testing.assert_allclose(Rotation.from_rotvec(got[3][i]).as_matrix(), got[2][i],
@@ -511,6 +512,22 @@ def test_a_body_reference_gives_every_view_the_body_s_handedness():
     for x in np.asarray(on["shape_camera"], np.float64):
         x = x - x.mean(0)
         assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
+    # handedness_flipped names the views given their mirror image; own_canonical undoes it,
+    # so the results' "mirrored" is the model's own mix of handednesses either way.
+    flipped = np.asarray(on["handedness_flipped"])
+    assert set(flipped.tolist()) == {0.0, 1.0} and not np.asarray(off["handedness_flipped"]).any()
+    for i in range(len(kp)):
+        a, b = (np.asarray(p["shape_camera"][i, :, 2]) for p in (on, off))
+        np.testing.assert_allclose(a - a.mean(), (b - b.mean()) * (1 - 2 * flipped[i]), atol=1e-5)
+    np.testing.assert_allclose(model.own_canonical(on["shape_canonical"], flipped),
+                               off["shape_canonical"], atol=1e-6)
+    data = KeypointData(kp=np.asarray(kp), vis=np.asarray(vis))
+    scores = [inference.evaluate_split(variables, data, c, "none")["mirrored"] for c in (
+        dataclasses.replace(cfg, test_time_one_handedness=True,
+                            test_time_handedness_reference="h36m"), cfg)]
+    own = evaluation.mirrored_fraction(np.asarray(off["shape_canonical"]))
+    as_given = evaluation.mirrored_fraction(np.asarray(on["shape_canonical"]))
+    assert scores[0] == scores[1] == own != as_given  # the views as the model made them
 
 
 def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():

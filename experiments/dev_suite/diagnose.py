@@ -24,14 +24,13 @@ Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
 - ``alpha_rms``: RMS of the shape coefficients times the basis norm (the size of the
   deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
 
-The canonical shapes are the model's own (``own_handedness``: inference with
-``test_time_one_handedness`` off): a view that a body's handedness at inference mirrors
-gets a mirrored canonical shape, which would count as spread and rotation between views of
-one frame. ``sign_agreement_own`` is the sign agreement of that inference (the model's
-own depth signs), ``sign_agreement`` that of the inference the config asks for.
+The canonical shapes are the model's own (``model.own_canonical``: before
+``test_time_one_handedness`` mirrors a view to a body's handedness, which would count as
+spread and rotation between views of one frame). ``sign_agreement_own`` is the sign
+agreement of the model's own depths (those views' depths mirrored back),
+``sign_agreement`` that of the inference the config asks for.
 """
 
-import dataclasses
 import json
 import os
 import sys
@@ -47,7 +46,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import literal, override, run_main  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, train  # noqa: E402
+from c3dpo_jax import baselines, evaluation, model, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -76,36 +75,29 @@ def _oracle(shapes: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.minimum(*errs)
 
 
-def own_handedness(model_cfg):
-    """``model_cfg`` with ``test_time_one_handedness`` off: the model's own canonical shapes
-    and depth signs, view by view."""
-    return dataclasses.replace(model_cfg, test_time_one_handedness=False,
-                               test_time_handedness_reference="mean_shape")
-
-
 def _sign_agreement(shape_3d, data) -> float:
     per = evaluation.mpjpe(evaluation.center_depth(shape_3d, data.vis),
                            evaluation.center_depth(data.kp3d, data.vis), data.vis)
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
 
 
-def measure(pred: dict, data, views_per_frame: int, protocol: str, own: dict | None = None
-            ) -> dict:
-    """The module docstring's measures of ``pred``, the inference the config asks for; the
-    canonical shapes' from ``own`` (``own_handedness``'s inference; default ``pred``)."""
-    own = pred if own is None else own
+def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
+    """The module docstring's measures of ``pred`` (``train.predict``'s outputs)."""
     res = evaluation.evaluate(pred["shape_image_coord"], data, protocol)
     mask = data.vis
     per = evaluation.mpjpe(evaluation.center_depth(pred["shape_image_coord"], mask),
                            evaluation.center_depth(data.kp3d, mask), mask)
-    canon = own["shape_canonical"] / own["kp_scale"][:, None, None]  # the data's units
+    flipped = np.asarray(pred["handedness_flipped"]) > 0
+    own_3d = pred["shape_image_coord"] * np.where(flipped[:, None, None], [1.0, 1.0, -1.0], 1.0)
+    canon = model.own_canonical(pred["shape_canonical"], pred["handedness_flipped"])
+    canon = canon / pred["kp_scale"][:, None, None]  # the data's units
     canon = canon - canon.mean(1, keepdims=True)
     out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
                sign_agreement=float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
-               sign_agreement_own=_sign_agreement(own["shape_image_coord"], data),
+               sign_agreement_own=_sign_agreement(own_3d, data),
                reprojection=evaluation.reprojection_error(pred["kp_reprojected"], data),
                canon_oracle=float(_oracle(canon, data.kp3d).mean()),
-               mean_canon_size=_rms(canon), alpha_rms=float(np.sqrt(np.mean(own["alpha"]**2))))
+               mean_canon_size=_rms(canon), alpha_rms=float(np.sqrt(np.mean(pred["alpha"]**2))))
     m = len(canon) // views_per_frame * views_per_frame
     if views_per_frame > 1 and m:
         frames = canon[:m].reshape(-1, views_per_frame, *canon.shape[1:])
@@ -151,10 +143,8 @@ def main(argv):
         variables = jax.device_get(state.variables)
         for split, data in (("train", train_sub), ("test", test_data)):
             pred = train.predict(variables, data, spec.model)
-            own = (train.predict(variables, data, own_handedness(spec.model))
-                   if spec.model.test_time_one_handedness else pred)
             row = dict(step=record["step"], split=split,
-                       **measure(pred, data, vpf, info["protocol"], own))
+                       **measure(pred, data, vpf, info["protocol"]))
             _write_record(path, row)
             print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in row.items()), flush=True)
