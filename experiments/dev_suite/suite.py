@@ -32,7 +32,9 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   the head by ``data.humans.coco_from_h36m``);
 - ``humans_limbs`` and ``humans_coco_torso`` (not in the default list): the built-in humans
   with their 12 limb joints only, and in COCO's order with Human3.6M's pelvis, spine,
-  thorax and head top added (21 points): which points the humans in COCO's order lack.
+  thorax and head top added (21 points): which points the humans in COCO's order lack;
+- ``humans_v3`` (not in the default list): the built-in humans seen by 3 cameras per pose
+  instead of 30, with ten times the people and poses (the same number of views).
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -104,6 +106,9 @@ SCALE_RANGE = (0.5, 2.0)
 LIMBS = (1, 2, 3, 4, 5, 6, 11, 12, 13, 14, 15, 16)
 TORSO = (0, 7, 8, 10)
 POINTS = {"humans_limbs": "limbs", "humans_coco_torso": "coco_torso"}
+# The built-in humans seen by fewer cameras per pose (not in the default list), as human
+# motion capture often is: ten times the poses, the same number of views.
+HUMAN_VIEWS = {"humans_v3": 3}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -215,8 +220,14 @@ def make_data(name: str, data_root: str, out: str) -> dict:
     info_path = os.path.join(out, "data", f"{name}.json")
     if not all(os.path.exists(p) for p in (info_path, *paths.values())):
         base = SCALED.get(name, name)
-        if ORDERS.get(base, base) == "humans" or base in POINTS:
-            train, test = load_splits(humans_config.get_config().data)
+        if ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_VIEWS:
+            data_config = humans_config.get_config().data
+            if base in HUMAN_VIEWS:
+                h = data_config.humans
+                factor = h.views_per_pose // HUMAN_VIEWS[base]
+                h.views_per_pose = HUMAN_VIEWS[base]
+                h.n_train_poses, h.n_test_poses = h.n_train_poses * factor, h.n_test_poses * factor
+            train, test = load_splits(data_config)
             if base in ORDERS:
                 train, test = (_coco_people(d) for d in (train, test))
             elif base in POINTS:
@@ -227,7 +238,8 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             full, views = VIEWS.get(full, (full, 3))
             full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
-            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS}:
+            if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS,
+                            *HUMAN_VIEWS}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -295,6 +307,8 @@ def _human_points(data, points: str):
 def views_per_frame(name: str) -> int:
     """How many consecutive views of a suite dataset show one frame (one pose)."""
     base = SCALED.get(name, name)
+    if base in HUMAN_VIEWS:
+        return HUMAN_VIEWS[base]
     if ORDERS.get(base, base) == "humans" or base in POINTS:
         return 30  # configs/humans.py's views per pose
     full = SUBSETS.get(base, (base, None))[0]
