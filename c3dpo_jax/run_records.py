@@ -96,7 +96,12 @@ def clock_at(results: dict, step: int) -> float | None:
 
 def trim_metrics(workdir: str, step: int) -> None:
     """Drops ``metrics.jsonl`` records past ``step``: a resumed run replays those steps."""
-    path = os.path.join(workdir, "metrics.jsonl")
+    trim_records(os.path.join(workdir, "metrics.jsonl"), step)
+
+
+def trim_records(path: str, step: int) -> None:
+    """Drops the records past ``step`` of the JSON-lines file ``path`` (records with a
+    ``"step"``; a line cut short by a kill goes too), if the file exists."""
     if not os.path.exists(path):
         return
     with open(path) as f:

@@ -224,15 +224,20 @@ out = [float(np.abs(f - f[:, :1, :1]).max()), float(np.abs(out.kp / data.kp - f[
 
 
 def test_diagnostics_keep_one_record_per_step_and_split_on_resume(tmp_path):
-    """diagnose.py's records: a step evaluated again after a resume replaces its earlier
-    record of that split instead of adding a second one; other steps and splits stay."""
+    """diagnose.py's records: a resumed run's first evaluation (here step 2, which the
+    first run had recorded too) drops the records from that step on before appending, so
+    every step and split keeps one record; earlier steps stay."""
     path = str(tmp_path / "diagnostics.jsonl")
-    rows = [dict(step=1, split="train", mpjpe=0.5), dict(step=1, split="test", mpjpe=0.6),
-            dict(step=2, split="train", mpjpe=0.4), dict(step=2, split="train", mpjpe=0.3)]
-    _suite_value("diagnose", f"[diagnose._write_record({path!r}, r) for r in {rows!r}] and 0")
+    first = [dict(step=1, split="train", mpjpe=0.5), dict(step=1, split="test", mpjpe=0.6),
+             dict(step=2, split="train", mpjpe=0.4)]
+    resumed = [dict(step=2, split="train", mpjpe=0.3), dict(step=2, split="test", mpjpe=0.35),
+               dict(step=3, split="train", mpjpe=0.2)]
+    expression = ("[r.write(x) for r, rows in ((diagnose._Records({p!r}), {a!r}), "
+                  "(diagnose._Records({p!r}), {b!r})) for x in rows] and 0")
+    _suite_value("diagnose", expression.format(p=path, a=first, b=resumed))
     with open(path) as f:
         kept = [json.loads(line) for line in f]
-    assert kept == rows[:2] + rows[3:]
+    assert kept == first[:2] + resumed
 
 
 @pytest.mark.parametrize("script, args, message", [

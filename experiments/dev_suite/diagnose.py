@@ -46,7 +46,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import literal, override, run_main  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, model, train  # noqa: E402
+from c3dpo_jax import baselines, evaluation, model, run_records, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -110,18 +110,20 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
     return out
 
 
-def _write_record(path: str, row: dict) -> None:
-    """Appends ``row`` to the JSON-lines file, replacing an earlier record of the same step
-    and split: a resumed run evaluates again the steps after its last checkpoint, which a
-    plain append would record twice."""
-    rows = []
-    if os.path.exists(path):
-        with open(path) as f:
-            rows = [json.loads(line) for line in f if line.strip()]
-    rows = [r for r in rows if (r["step"], r["split"]) != (row["step"], row["split"])]
-    with open(path + ".tmp", "w") as f:
-        f.writelines(json.dumps(r) + "\n" for r in [*rows, row])
-    os.replace(path + ".tmp", path)
+class _Records:
+    """``diagnostics.jsonl``, appended to; its first write drops the records at or after its
+    step (``run_records.trim_records``): a resumed run evaluates again the steps after its
+    last checkpoint, which would otherwise be recorded twice."""
+
+    def __init__(self, path: str):
+        self.path, self.trimmed = path, False
+
+    def write(self, row: dict) -> None:
+        if not self.trimmed:
+            run_records.trim_records(self.path, row["step"] - 1)
+            self.trimmed = True
+        with open(self.path, "a") as f:
+            f.write(json.dumps(row) + "\n")
 
 
 def main(argv):
@@ -137,7 +139,7 @@ def main(argv):
     c = train.resolve_from_data(c, train_data)
     spec = train.RunSpec.from_config(c)
     os.makedirs(FLAGS.diag_out, exist_ok=True)
-    path = os.path.join(FLAGS.diag_out, "diagnostics.jsonl")
+    records = _Records(os.path.join(FLAGS.diag_out, "diagnostics.jsonl"))
 
     def after_evaluation(record, state):
         variables = jax.device_get(state.variables)
@@ -145,7 +147,7 @@ def main(argv):
             pred = train.predict(variables, data, spec.model)
             row = dict(step=record["step"], split=split,
                        **measure(pred, data, vpf, info["protocol"]))
-            _write_record(path, row)
+            records.write(row)
             print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in row.items()), flush=True)
 
