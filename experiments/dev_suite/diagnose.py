@@ -93,7 +93,7 @@ def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
     canon = canon / pred["kp_scale"][:, None, None]  # the data's units
     canon = canon - canon.mean(1, keepdims=True)
     out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
-               sign_agreement=float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
+               sign_agreement=_sign_agreement(pred["shape_image_coord"], data),
                sign_agreement_own=_sign_agreement(own_3d, data),
                reprojection=evaluation.reprojection_error(pred["kp_reprojected"], data),
                canon_oracle=float(_oracle(canon, data.kp3d).mean()),

@@ -220,7 +220,7 @@ def make_data(name: str, data_root: str, out: str) -> dict:
     info_path = os.path.join(out, "data", f"{name}.json")
     if not all(os.path.exists(p) for p in (info_path, *paths.values())):
         base = SCALED.get(name, name)
-        if ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_VIEWS:
+        if _built_in_humans(base):
             data_config = humans_config.get_config().data
             if base in HUMAN_VIEWS:
                 h = data_config.humans
@@ -304,13 +304,16 @@ def _human_points(data, points: str):
                                vis=np.concatenate([coco.vis, data.vis[:, t]], 1))
 
 
+def _built_in_humans(base: str) -> bool:
+    """Whether a suite dataset (``SCALED``'s base) is made from the built-in humans."""
+    return ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_VIEWS
+
+
 def views_per_frame(name: str) -> int:
     """How many consecutive views of a suite dataset show one frame (one pose)."""
     base = SCALED.get(name, name)
-    if base in HUMAN_VIEWS:
-        return HUMAN_VIEWS[base]
-    if ORDERS.get(base, base) == "humans" or base in POINTS:
-        return 30  # configs/humans.py's views per pose
+    if _built_in_humans(base):
+        return HUMAN_VIEWS.get(base, 30)  # 30: configs/humans.py's views per pose
     full = SUBSETS.get(base, (base, None))[0]
     if full in VIEWS:
         return VIEWS[full][1]
