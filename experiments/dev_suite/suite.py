@@ -34,7 +34,9 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
   with their 12 limb joints only, and in COCO's order with Human3.6M's pelvis, spine,
   thorax and head top added (21 points): which points the humans in COCO's order lack;
 - ``humans_v3`` (not in the default list): the built-in humans seen by 3 cameras per pose
-  instead of 30, with ten times the people and poses (the same number of views).
+  instead of 30, with ten times the people and poses (the same number of views);
+  ``humans_noise02`` and ``humans_noise05``: with Gaussian noise of 0.02 or 0.05 m on the 2D
+  points (about 4% and 11% of the bodies' RMS radius), as detected keypoints have.
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -106,9 +108,12 @@ SCALE_RANGE = (0.5, 2.0)
 LIMBS = (1, 2, 3, 4, 5, 6, 11, 12, 13, 14, 15, 16)
 TORSO = (0, 7, 8, 10)
 POINTS = {"humans_limbs": "limbs", "humans_coco_torso": "coco_torso"}
-# The built-in humans seen by fewer cameras per pose (not in the default list), as human
-# motion capture often is: ten times the poses, the same number of views.
-HUMAN_VIEWS = {"humans_v3": 3}
+# The built-in humans made otherwise (not in the default list; ``data.humans`` settings of
+# configs/humans.py): seen by 3 cameras per pose, as human motion capture often is (ten times
+# the poses, the same number of views); with Gaussian noise on the 2D points (metres, the
+# bodies' RMS radius about 0.45), as detected keypoints have.
+HUMAN_DATA = {"humans_v3": dict(views_per_pose=3, n_train_poses=3000, n_test_poses=500),
+              "humans_noise02": dict(noise=0.02), "humans_noise05": dict(noise=0.05)}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -222,11 +227,7 @@ def make_data(name: str, data_root: str, out: str) -> dict:
         base = SCALED.get(name, name)
         if _built_in_humans(base):
             data_config = humans_config.get_config().data
-            if base in HUMAN_VIEWS:
-                h = data_config.humans
-                factor = h.views_per_pose // HUMAN_VIEWS[base]
-                h.views_per_pose = HUMAN_VIEWS[base]
-                h.n_train_poses, h.n_test_poses = h.n_train_poses * factor, h.n_test_poses * factor
+            data_config.humans.update(HUMAN_DATA.get(base, {}))
             train, test = load_splits(data_config)
             if base in ORDERS:
                 train, test = (_coco_people(d) for d in (train, test))
@@ -239,7 +240,7 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
             if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS,
-                            *HUMAN_VIEWS}:
+                            *HUMAN_DATA}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -306,14 +307,14 @@ def _human_points(data, points: str):
 
 def _built_in_humans(base: str) -> bool:
     """Whether a suite dataset (``SCALED``'s base) is made from the built-in humans."""
-    return ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_VIEWS
+    return ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_DATA
 
 
 def views_per_frame(name: str) -> int:
     """How many consecutive views of a suite dataset show one frame (one pose)."""
     base = SCALED.get(name, name)
     if _built_in_humans(base):
-        return HUMAN_VIEWS.get(base, 30)  # 30: configs/humans.py's views per pose
+        return HUMAN_DATA.get(base, {}).get("views_per_pose", 30)  # configs/humans.py's 30
     full = SUBSETS.get(base, (base, None))[0]
     if full in VIEWS:
         return VIEWS[full][1]
