@@ -431,12 +431,13 @@ out = [limbs.n_keypoints, torso.n_keypoints,
             and (torso.vis[:, :17] == coco.vis).all()),
        [suite.views_per_frame(n) for n in ("humans", "humans_coco_torso", "humans_coco_scaled",
                                            "drink", "face_k8", "cmu131_coco", "deepmimic_v10",
-                                           "cmu131_k12", "humans_v3", "humans_noise02")]]
+                                           "cmu131_k12", "humans_v3", "humans_noise02",
+                                           "cmu131_noise11")]]
 """
     n_limbs, n_torso, limbs_ok, torso_ok, vpf = _suite_value(
         "suite", f"(exec({code!r}, globals()), out)[1]")
     assert (n_limbs, n_torso) == (12, 21) and limbs_ok and torso_ok
-    assert vpf == [30, 30, 30, 10, 10, 3, 10, 3, 3, 30]
+    assert vpf == [30, 30, 30, 10, 10, 3, 10, 3, 3, 30, 3]
 
 
 def test_diagnostics_take_canonical_shapes_from_the_models_own_handedness():

@@ -36,7 +36,10 @@ Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 - ``humans_v3`` (not in the default list): the built-in humans seen by 3 cameras per pose
   instead of 30, with ten times the people and poses (the same number of views);
   ``humans_noise02`` and ``humans_noise05``: with Gaussian noise of 0.02 or 0.05 m on the 2D
-  points (about 4% and 11% of the bodies' RMS radius), as detected keypoints have.
+  points (about 4% and 11% of the bodies' RMS radius), as detected keypoints have;
+- ``cmu131_noise04`` and ``cmu131_noise11`` (not in the default list): CMU 131's views with
+  Gaussian noise of 0.04 or 0.11 on the 2D points (the importer's ``noise``, in units of the
+  normalised sequence's RMS radius).
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` (config overrides, e.g.
 ``optim.lr=1e-3``); ``default`` is the config unchanged. Runs go to
@@ -114,6 +117,9 @@ POINTS = {"humans_limbs": "limbs", "humans_coco_torso": "coco_torso"}
 # bodies' RMS radius about 0.45), as detected keypoints have.
 HUMAN_DATA = {"humans_v3": dict(views_per_pose=3, n_train_poses=3000, n_test_poses=500),
               "humans_noise02": dict(noise=0.02), "humans_noise05": dict(noise=0.05)}
+# A motion-capture set's views with Gaussian noise on the 2D points (not in the default
+# list; the importer's ``noise``, in units of the normalised sequence's RMS radius).
+NOISY = {"cmu131_noise04": ("cmu131", 0.04), "cmu131_noise11": ("cmu131", 0.11)}
 BASELINE = "fitted mean shape"
 ONE_SHOT = "fitted mean shape, one-shot camera"
 MINUTES = (2, 5, 10)
@@ -235,12 +241,13 @@ def make_data(name: str, data_root: str, out: str) -> dict:
                 train, test = (_human_points(d, POINTS[base]) for d in (train, test))
             protocol = "up3d"
         else:
-            full, points = SUBSETS.get(base, (base, None))
+            full, noise = NOISY.get(base, (base, 0.0))
+            full, points = SUBSETS.get(full, (full, None))
             full, views = VIEWS.get(full, (full, 3))
             full = ORDERS.get(full, full)
             folder = "nrsfm" if full in NRSFM else "mocap"
             if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS,
-                            *HUMAN_DATA}:
+                            *HUMAN_DATA, *NOISY}:
                 raise ValueError(f"no dataset {name!r} in the suite (its datasets: the module "
                                  "docstring, --helpfull)")
             if not data_root:
@@ -254,6 +261,8 @@ def make_data(name: str, data_root: str, out: str) -> dict:
             kw = {} if full in NRSFM else dict(
                 views_per_frame=views, clip=importers.load_clips(path),
                 hold_out=MOCAP.get(full, "blocks"), n_blocks=5)
+            if noise:
+                kw["noise"] = noise
             if points is not None:
                 x = x[:, list(points)]
             if base in ORDERS:
@@ -315,7 +324,8 @@ def views_per_frame(name: str) -> int:
     base = SCALED.get(name, name)
     if _built_in_humans(base):
         return HUMAN_DATA.get(base, {}).get("views_per_pose", 30)  # configs/humans.py's 30
-    full = SUBSETS.get(base, (base, None))[0]
+    full = NOISY.get(base, (base,))[0]
+    full = SUBSETS.get(full, (full, None))[0]
     if full in VIEWS:
         return VIEWS[full][1]
     return 10 if ORDERS.get(full, full) in NRSFM else 3
