@@ -85,7 +85,7 @@ def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig, 
     out = {"n_samples": len(data), "reprojection": reproj}
     if data.class_mask is None:  # one object class: one mean shape to compare handedness
         out["mirrored"] = evaluation.mirrored_fraction(
-            model.own_canonical(pred["shape_canonical"], pred["handedness_flipped"]))
+            model.own_handedness(pred["shape_canonical"], pred["handedness_flipped"]))
     if data.kp3d is not None and protocol != "none":
         out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
     return out

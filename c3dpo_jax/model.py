@@ -75,7 +75,7 @@ class Prediction(Mapping):
         unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
       handedness_flipped: () 1 where ``test_time_one_handedness`` gave the view its mirror
         image, else 0: ``shape_canonical`` with its third axis negated there is the model's
-        own canonical shape (``own_canonical``).
+        own canonical shape (``own_handedness``).
     """
 
     shape_image_coord: Leaf
@@ -108,12 +108,13 @@ class Prediction(Mapping):
 _PREDICTION_FIELDS = tuple(f.name for f in dataclasses.fields(Prediction))
 
 
-def own_canonical(shape_canonical, handedness_flipped):
-    """The model's own canonical shapes ``(..., N, 3)``: ``Prediction.shape_canonical``
-    with the mirroring of ``test_time_one_handedness`` undone (``handedness_flipped``,
-    shape ``(...)``), numpy or jax arrays alike."""
+def own_handedness(shapes, handedness_flipped):
+    """Shapes ``(..., N, 3)`` of a ``Prediction`` with the mirroring of
+    ``test_time_one_handedness`` undone (the third axis negated where ``handedness_flipped``,
+    shape ``(...)``): the model's own ``shape_canonical``, and its own camera-frame or
+    image-coordinate depths up to their offset; numpy or jax arrays alike."""
     flipped = handedness_flipped[..., None, None] > 0
-    return shape_canonical * (1.0 - 2.0 * (flipped & (np.arange(3) == 2)))
+    return shapes * (1.0 - 2.0 * (flipped & (np.arange(3) == 2)))
 
 
 class TrainRotations(NamedTuple):

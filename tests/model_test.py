@@ -512,14 +512,14 @@ def test_a_body_reference_gives_every_view_the_body_s_handedness():
     for x in np.asarray(on["shape_camera"], np.float64):
         x = x - x.mean(0)
         assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
-    # handedness_flipped names the views given their mirror image; own_canonical undoes it,
+    # handedness_flipped names the views given their mirror image; own_handedness undoes it,
     # so the results' "mirrored" is the model's own mix of handednesses either way.
     flipped = np.asarray(on["handedness_flipped"])
     assert set(flipped.tolist()) == {0.0, 1.0} and not np.asarray(off["handedness_flipped"]).any()
     for i in range(len(kp)):
         a, b = (np.asarray(p["shape_camera"][i, :, 2]) for p in (on, off))
         np.testing.assert_allclose(a - a.mean(), (b - b.mean()) * (1 - 2 * flipped[i]), atol=1e-5)
-    np.testing.assert_allclose(model.own_canonical(on["shape_canonical"], flipped),
+    np.testing.assert_allclose(model.own_handedness(on["shape_canonical"], flipped),
                                off["shape_canonical"], atol=1e-6)
     data = KeypointData(kp=np.asarray(kp), vis=np.asarray(vis))
     scores = [inference.evaluate_split(variables, data, c, "none")["mirrored"] for c in (

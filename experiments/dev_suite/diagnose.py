@@ -24,7 +24,7 @@ Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
 - ``alpha_rms``: RMS of the shape coefficients times the basis norm (the size of the
   deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
 
-The canonical shapes are the model's own (``model.own_canonical``: before
+The canonical shapes are the model's own (``model.own_handedness``: before
 ``test_time_one_handedness`` mirrors a view to a body's handedness, which would count as
 spread and rotation between views of one frame). ``sign_agreement_own`` is the sign
 agreement of the model's own depths (those views' depths mirrored back),
@@ -75,26 +75,28 @@ def _oracle(shapes: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.minimum(*errs)
 
 
-def _sign_agreement(shape_3d, data) -> float:
-    per = evaluation.mpjpe(evaluation.center_depth(shape_3d, data.vis),
-                           evaluation.center_depth(data.kp3d, data.vis), data.vis)
+def _per_view(shape_3d, data) -> dict:
+    """``evaluation.mpjpe``'s per-view errors of ``shape_3d``, depths centred."""
+    return evaluation.mpjpe(evaluation.center_depth(shape_3d, data.vis),
+                            evaluation.center_depth(data.kp3d, data.vis), data.vis)
+
+
+def _sign_agreement(per: dict) -> float:
+    """The fraction of views whose prediction is nearer the truth than its depth flip."""
     return float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"]))
 
 
 def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
     """The module docstring's measures of ``pred`` (``train.predict``'s outputs)."""
     res = evaluation.evaluate(pred["shape_image_coord"], data, protocol)
-    mask = data.vis
-    per = evaluation.mpjpe(evaluation.center_depth(pred["shape_image_coord"], mask),
-                           evaluation.center_depth(data.kp3d, mask), mask)
-    flipped = np.asarray(pred["handedness_flipped"]) > 0
-    own_3d = pred["shape_image_coord"] * np.where(flipped[:, None, None], [1.0, 1.0, -1.0], 1.0)
-    canon = model.own_canonical(pred["shape_canonical"], pred["handedness_flipped"])
+    per = _per_view(pred["shape_image_coord"], data)
+    own_3d = model.own_handedness(pred["shape_image_coord"], pred["handedness_flipped"])
+    canon = model.own_handedness(pred["shape_canonical"], pred["handedness_flipped"])
     canon = canon / pred["kp_scale"][:, None, None]  # the data's units
     canon = canon - canon.mean(1, keepdims=True)
     out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
-               sign_agreement=_sign_agreement(pred["shape_image_coord"], data),
-               sign_agreement_own=_sign_agreement(own_3d, data),
+               sign_agreement=_sign_agreement(per),
+               sign_agreement_own=_sign_agreement(_per_view(own_3d, data)),
                reprojection=evaluation.reprojection_error(pred["kp_reprojected"], data),
                canon_oracle=float(_oracle(canon, data.kp3d).mean()),
                mean_canon_size=_rms(canon), alpha_rms=float(np.sqrt(np.mean(pred["alpha"]**2))))

@@ -241,10 +241,7 @@ def make_data(name: str, data_root: str, out: str) -> dict:
                 train, test = (_human_points(d, POINTS[base]) for d in (train, test))
             protocol = "up3d"
         else:
-            full, noise = NOISY.get(base, (base, 0.0))
-            full, points = SUBSETS.get(full, (full, None))
-            full, views = VIEWS.get(full, (full, 3))
-            full = ORDERS.get(full, full)
+            full, points, views, noise = _source(base)
             folder = "nrsfm" if full in NRSFM else "mocap"
             if name not in {*DATASETS, *MOCAP, *SUBSETS, *VIEWS, *ORDERS, *SCALED, *POINTS,
                             *HUMAN_DATA, *NOISY}:
@@ -319,16 +316,24 @@ def _built_in_humans(base: str) -> bool:
     return ORDERS.get(base, base) == "humans" or base in POINTS or base in HUMAN_DATA
 
 
+def _source(base: str):
+    """``(sequence, points, views per frame, 2D noise)`` of a suite dataset made from a
+    sequence (``SCALED``'s base): ``NOISY``, ``SUBSETS``, ``VIEWS`` and ``ORDERS`` resolved
+    to the sequence's name (views per frame: the mocap sets'; the sequences use the
+    importer's 10)."""
+    full, noise = NOISY.get(base, (base, 0.0))
+    full, points = SUBSETS.get(full, (full, None))
+    full, views = VIEWS.get(full, (full, 3))
+    return ORDERS.get(full, full), points, views, noise
+
+
 def views_per_frame(name: str) -> int:
     """How many consecutive views of a suite dataset show one frame (one pose)."""
     base = SCALED.get(name, name)
     if _built_in_humans(base):
         return HUMAN_DATA.get(base, {}).get("views_per_pose", 30)  # configs/humans.py's 30
-    full = NOISY.get(base, (base,))[0]
-    full = SUBSETS.get(full, (full, None))[0]
-    if full in VIEWS:
-        return VIEWS[full][1]
-    return 10 if ORDERS.get(full, full) in NRSFM else 3
+    full, _, views, _ = _source(base)
+    return 10 if full in NRSFM else views
 
 
 def _scaled(data, seed: int):
