@@ -204,8 +204,13 @@ class ModelConfig:
     # came out mirrored still gives the body's own. "auto" (a training config's value,
     # resolved from the training views by ``train.resolve_handedness``): a body whose
     # projections fit the training views, with ``test_time_one_handedness`` on, else the
-    # mean shape.
+    # mean shape. "body": the body in ``test_time_handedness_body`` (a training config may
+    # name a file instead, ``BODY_FILE_SUFFIXES``, which ``train.resolve_handedness`` reads).
     test_time_handedness_reference: str = "mean_shape"
+    # With test_time_handedness_reference="body": one 3D example of the points, N rows of
+    # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
+    # motion capture, a rig's rest pose): every view is given its handedness.
+    test_time_handedness_body: tuple = ()
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
     # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
@@ -220,6 +225,12 @@ class ModelConfig:
         field; this covers ``ModelConfig(...)``, ``dataclasses.replace`` and a hand-edited
         config.json read by ``load``."""
         problems = []
+        body = self.test_time_handedness_body
+        try:  # rows of floats, hashable (a saved config holds lists)
+            object.__setattr__(self, "test_time_handedness_body",
+                               tuple(tuple(float(v) for v in row) for row in body))
+        except (TypeError, ValueError):
+            problems.append(f"test_time_handedness_body={body!r} (rows of three numbers)")
         for name, known in (("projection_type", ("orthographic", "perspective")),
                             ("keypoint_norm_type", ("to_mean", "to_root")),
                             ("test_time_turn_span", TURN_SPANS)):
@@ -250,9 +261,13 @@ class ModelConfig:
             problems.append("test_time_one_handedness=True ("
                             + handedness_problem(True, self.projection_type) + ")")
         if why := reference_problem(self.test_time_handedness_reference, self.n_keypoints,
-                                    bool(self.test_time_one_handedness)):
+                                    bool(self.test_time_one_handedness),
+                                    self.test_time_handedness_body):
             problems.append(f"test_time_handedness_reference="
                             f"{self.test_time_handedness_reference!r} ({why})")
+        elif self.test_time_handedness_body and self.test_time_handedness_reference != "body":
+            problems.append("test_time_handedness_body is given but test_time_handedness_"
+                            f"reference is {self.test_time_handedness_reference!r}, not 'body'")
         if problems:
             raise ValueError("model config: " + "; ".join(problems))
 
@@ -266,6 +281,10 @@ class ModelConfig:
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"unknown model option(s) {unknown}; known: {sorted(names)}")
+        body = d.get("test_time_handedness_body")
+        if isinstance(body, list | np.ndarray):  # JSON's lists
+            d["test_time_handedness_body"] = tuple(tuple(row) if isinstance(
+                row, list | np.ndarray) else row for row in body)
         return cls(**d)
 
     def to_dict(self) -> dict[str, Any]:
@@ -590,14 +609,87 @@ def handedness_problem(one_handedness: bool, projection_type: str) -> str:
 # common 2D detectors' order (nose, eyes, ears, then shoulders, elbows, wrists, hips, knees,
 # ankles, left before right; ``data.humans.coco_from_h36m``).
 HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17, "coco": 17}
+# Files a training config (``test_time_handedness_reference``), ``reconstruct`` and
+# c3dpo-predict take a body from (``read_body``).
+BODY_FILE_SUFFIXES = (".npy", ".json", ".txt", ".csv")
+# A body whose centred points' smallest singular value is below this fraction of their
+# largest lies near a plane (or a line): its mirror image is nearly itself, so it has no
+# handedness to give (the built-in humans' average body: 0.20).
+BODY_MIN_THICKNESS = 0.05
 
 
-def reference_problem(name, n_keypoints: int, one_handedness: bool = True) -> str:
-    """Why ``test_time_handedness_reference=name`` cannot be used ('' if it can)."""
+def is_body_file(name) -> bool:
+    """Whether ``name`` names a file to read a body from (by its suffix)."""
+    return isinstance(name, str) and name.lower().endswith(BODY_FILE_SUFFIXES)
+
+
+def read_body(path: str) -> np.ndarray:
+    """The (N, 3) body in ``path``: a ``.npy`` array, a ``.json`` list of N ``[x, y, z]``,
+    or ``.txt`` / ``.csv`` text of N rows of three numbers (spaces or commas). One-line
+    ``ValueError`` for a file that cannot be read as that."""
+    import json
+    import os
+
+    path = os.path.expanduser(path)
+    if not os.path.exists(path):
+        raise ValueError(f"body file {path!r} does not exist")
+    try:
+        if path.lower().endswith(".npy"):
+            body = np.load(path, allow_pickle=False)
+        elif path.lower().endswith(".json"):
+            with open(path, encoding="utf-8-sig") as f:
+                body = json.load(f)
+        else:
+            with open(path, encoding="utf-8-sig") as f:
+                body = np.loadtxt(f.read().replace(",", " ").splitlines(), ndmin=2)
+        body = np.asarray(body, np.float64)
+    except (ValueError, TypeError, OSError) as err:
+        raise ValueError(f"body file {path!r} is not N rows of (x, y, z): "
+                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}"
+                         ) from None
+    if body.ndim != 2 or body.shape[1] != 3:
+        raise ValueError(f"body file {path!r} holds an array of shape {body.shape}; a body is "
+                         "N rows of (x, y, z)")
+    return body
+
+
+def body_problem(body, n_keypoints: int) -> str:
+    """Why ``body`` cannot give the views of a model of ``n_keypoints`` points their
+    handedness ('' if it can)."""
+    try:
+        b = np.asarray(body, np.float64)
+    except (TypeError, ValueError):
+        return "a body is N rows of (x, y, z)"
+    if b.shape != (n_keypoints, 3):
+        return (f"a body of the model's {n_keypoints} points, N rows of (x, y, z); "
+                f"got shape {b.shape}")
+    if not np.isfinite(b).all():
+        return "the body has NaN or inf"
+    s = np.linalg.svd(b - b.mean(0), compute_uv=False)
+    if not s[0] > 0 or s[2] < BODY_MIN_THICKNESS * s[0]:
+        return ("the body's points lie near one plane, so its mirror image is nearly itself "
+                "and it has no handedness to give")
+    return ""
+
+
+def reference_problem(name, n_keypoints: int, one_handedness: bool = True,
+                      body=()) -> str:
+    """Why ``test_time_handedness_reference=name`` (with ``test_time_handedness_body=body``
+    for "body") cannot be used ('' if it can)."""
     if name == "auto":
         return ""
+    if isinstance(name, str) and name == "body":
+        if not len(body):
+            return ("test_time_handedness_body is empty: give its N rows of (x, y, z), or "
+                    f"name a body file ({', '.join(BODY_FILE_SUFFIXES)}) in a training config")
+        if why := body_problem(body, n_keypoints):
+            return why
+        return "" if one_handedness else "used with test_time_one_handedness=True only"
+    if is_body_file(name):
+        return ("a body file is read when training starts (train.resolve_handedness); a "
+                "model holds its points as 'body'")
     if not isinstance(name, str) or name not in HANDEDNESS_REFERENCES:
-        return f"known: {', '.join(HANDEDNESS_REFERENCES)}, auto"
+        return f"known: {', '.join(HANDEDNESS_REFERENCES)}, body, auto"
     n = HANDEDNESS_REFERENCES[name]
     if n is not None and n != n_keypoints:
         return f"a body of {n} points in its joint order; the model has {n_keypoints}"
@@ -617,8 +709,11 @@ def _body(name: str) -> np.ndarray:
     return body
 
 
-def handedness_reference(name: str) -> Array | None:
-    """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES`` (None: the mean shape)."""
+def handedness_reference(name: str, body=()) -> Array | None:
+    """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES``, or ``body`` for "body"
+    (None: the mean shape)."""
+    if name == "body":
+        return jnp.asarray(np.asarray(body, np.float32))
     if name == "auto":
         raise ValueError("model.test_time_handedness_reference='auto' means 'from the training "
                          "data' and was not resolved (train.resolve_handedness(config, "
@@ -626,6 +721,18 @@ def handedness_reference(name: str) -> Array | None:
     if HANDEDNESS_REFERENCES[name] is None:
         return None
     return jnp.asarray(_body(name))
+
+
+def mean_shape_handed_as(net, params, class_mask, body):
+    """The basis' mean shape, mirrored (third axis negated) when it is nearer, up to a
+    proper rotation, to the mirror image of ``body`` (N, 3) than to the body. A user's body
+    (``test_time_handedness_reference="body"``) is one example in one pose, which the views
+    of other poses may not resemble; the mean shape, the model's typical pose, does. So
+    every view takes the mean shape's handedness and the mean shape, once, the body's."""
+    mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
+    mirrored = jnp.linalg.det(_class_centred(mean, class_mask).T
+                              @ _class_centred(body, class_mask)) < 0
+    return mean * jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)[None]
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):
@@ -767,9 +874,12 @@ def forward_eval(
         problem = handedness_problem(True, cfg.projection_type)
         if problem:
             raise ValueError(f"test_time_one_handedness=True ({problem})")
+        reference = handedness_reference(cfg.test_time_handedness_reference,
+                                         cfg.test_time_handedness_body)
+        if cfg.test_time_handedness_reference == "body":
+            reference = mean_shape_handed_as(net, variables["params"], class_mask, reference)
         x_cam, x_canon, rot, theta, flipped = one_handedness(
-            net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask,
-            handedness_reference(cfg.test_time_handedness_reference))
+            net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask, reference)
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, scale)
     image_xy = reproj_image

@@ -1,7 +1,8 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
-      [--refine_iters=0] [--turns=T] [--one_handedness] [--handedness_reference=h36m|coco]
+      [--refine_iters=0] [--turns=T] [--one_handedness]
+      [--handedness_reference=h36m|coco|BODY.npy|BODY.json|BODY.txt|BODY.csv]
 
 (or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
@@ -61,8 +62,9 @@ def _define_flags() -> dict:
             "handedness_reference", None, "Where --one_handedness takes the handedness from: "
             "'mean_shape' (the model's mean shape, which may itself be mirrored) or a body of "
             "the model's joint order, 'h36m' (Human3.6M's 17 joints) or 'coco' (COCO's 17 "
-            "person keypoints; either turns --one_handedness on); default: the model's "
-            "setting."),
+            "person keypoints), or a file of one 3D example of the points in the model's order "
+            "(.npy, .json, .txt, .csv: N rows of x, y, z, any pose, orientation and scale); "
+            "any body turns --one_handedness on; default: the model's setting."),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
 

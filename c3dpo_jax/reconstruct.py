@@ -311,7 +311,8 @@ def _warn_if_not_the_body(cfg: ModelConfig, canonical: np.ndarray) -> None:
     points in another order than the body's take a handedness that means nothing."""
     if not cfg.test_time_one_handedness:
         return
-    body = model.handedness_reference(cfg.test_time_handedness_reference)
+    body = model.handedness_reference(cfg.test_time_handedness_reference,
+                                      cfg.test_time_handedness_body)
     if body is None:
         return
     distance = float(np.median(body_distance(canonical, np.asarray(body))))
@@ -365,14 +366,25 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
         if problem:
             raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
         changes.update(test_time_one_handedness=bool(one_handedness))
+    body = cfg.test_time_handedness_body
+    if handedness_reference is not None and not isinstance(handedness_reference, str):
+        body, handedness_reference = handedness_reference, "body"  # an (N, 3) body
+        if why := model.body_problem(body, cfg.n_keypoints):
+            raise ValueError(f"handedness_reference: {why}")
+    elif model.is_body_file(handedness_reference):
+        body, handedness_reference = model.read_body(handedness_reference), "body"
+        if why := model.body_problem(body, cfg.n_keypoints):
+            raise ValueError(f"handedness_reference: {why}")
     if handedness_reference is not None:
-        if isinstance(handedness_reference, str) and handedness_reference == "auto":
+        if handedness_reference == "auto":
             raise ValueError("handedness_reference='auto' (a training setting, resolved from "
                              "the training views; name a body or 'mean_shape')")
         if one_handedness is None:  # a body to take the handedness from turns it on
             one_handedness = handedness_reference != "mean_shape" or cfg.test_time_one_handedness
+        if handedness_reference != "body":
+            body = ()
         problem = model.reference_problem(handedness_reference, cfg.n_keypoints,
-                                          bool(one_handedness))
+                                          bool(one_handedness), body)
         if problem:
             raise ValueError(f"handedness_reference={handedness_reference!r} ("
                              + problem.replace("test_time_one_handedness=True",
@@ -381,7 +393,8 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
         if problem:
             raise ValueError(f"handedness_reference={handedness_reference!r} ({problem})")
         changes.update(test_time_one_handedness=bool(one_handedness),
-                       test_time_handedness_reference=handedness_reference)
+                       test_time_handedness_reference=handedness_reference,
+                       test_time_handedness_body=tuple(map(tuple, np.asarray(body).tolist())))
     return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
@@ -396,7 +409,7 @@ def reconstruct(
     turn_span: str | None = None,
     refine_iters: int | np.integer | None = None,
     one_handedness: bool | None = None,
-    handedness_reference: str | None = None,
+    handedness_reference: str | ArrayLike | None = None,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -428,8 +441,10 @@ def reconstruct(
         open: all views right or all one mirror flip away) or a body of the model's joint
         order, "h36m" (Human3.6M's 17 joints) or "coco" (COCO's 17 person keypoints):
         every view gets a real body's handedness (turns ``one_handedness`` on unless it is
-        False); None: the model's
-        ``test_time_handedness_reference``. See ``model.HANDEDNESS_REFERENCES``.
+        False); for points in any other order, one 3D example of them, an (N, 3) array or
+        a file (``model.read_body``: .npy, .json, .txt, .csv), in any position,
+        orientation and scale (a frame of motion capture, a rig's rest pose); None: the
+        model's ``test_time_handedness_reference``. See ``model.HANDEDNESS_REFERENCES``.
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions;

@@ -364,12 +364,29 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     the body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
     projections fit the training views best, if they fit it (``body_fit_2d`` below
     ``BODY_FIT_2D``: points in its joint order), with ``test_time_one_handedness`` on, else
-    "mean_shape" (and ``test_time_one_handedness`` as it is); other values are returned
+    "mean_shape" (and ``test_time_one_handedness`` as it is). A body file
+    (``model.BODY_FILE_SUFFIXES``) is read into ``test_time_handedness_body`` with the
+    reference "body" and ``test_time_one_handedness`` on (a saved config's body, when it
+    has one: a resumed run keeps the body it started with). Other values are returned
     unchanged."""
-    if config.model.get("test_time_handedness_reference") != "auto":
+    reference = config.model.get("test_time_handedness_reference")
+    before = (saved or {}).get("model", {})
+    if model.is_body_file(reference):
+        config = config.copy_and_resolve_references()
+        if before.get("test_time_handedness_reference") == "body":
+            body = np.asarray(before["test_time_handedness_body"], np.float64)
+        else:
+            body = model.read_body(reference)
+        if why := model.body_problem(body, config.model.n_keypoints):
+            raise ValueError(f"config.model.test_time_handedness_reference={reference!r} "
+                             f"({why})")
+        config.model.test_time_handedness_reference = "body"
+        config.model.test_time_handedness_body = tuple(map(tuple, body.tolist()))
+        config.model.test_time_one_handedness = True
+        return config
+    if reference != "auto":
         return config
     config = config.copy_and_resolve_references()
-    before = (saved or {}).get("model", {})
     if before.get("test_time_handedness_reference", "auto") != "auto":
         config.model.test_time_handedness_reference = before["test_time_handedness_reference"]
         config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))

@@ -72,6 +72,17 @@ class OneOf:
         return "one of " + ", ".join(repr(o) for o in self.options)
 
 
+class BodyOrOneOf(OneOf):
+    """One of ``options``, or the name of a body file (``model.BODY_FILE_SUFFIXES``)."""
+
+    def __contains__(self, value: Any) -> bool:
+        return super().__contains__(value) or model.is_body_file(value)
+
+    def __str__(self) -> str:
+        return (super().__str__() + ", or a body file ("
+                + ", ".join(model.BODY_FILE_SUFFIXES) + ")")
+
+
 POSITIVE_INT = Range(lo=1, integer=True)
 COUNT = Range(lo=0, integer=True)
 POSITIVE = Range(lo=0, lo_open=True)
@@ -117,7 +128,8 @@ RULES: dict[str, Range | OneOf] = {
     "model.canonicalization_rot_angle": ANGLE,
     "model.test_time_turns": POSITIVE_INT,
     "model.test_time_turn_span": OneOf(model.TURN_SPANS),
-    "model.test_time_handedness_reference": OneOf((*model.HANDEDNESS_REFERENCES, "auto")),
+    "model.test_time_handedness_reference": BodyOrOneOf((*model.HANDEDNESS_REFERENCES,
+                                                         "body", "auto")),
     "model.test_time_refine_iters": COUNT,
     "model.test_time_refine_prior": NON_NEGATIVE,
     "loss.huber_scaling": POSITIVE,

@@ -36,7 +36,11 @@ body's handedness, so the reconstructions are not mirror images (CMU 131: error 
 protocol's flip 0.08 instead of 0.35-0.58; the flip-resolved error unchanged;
 experiments/dev_suite, "The handedness of a human body"); other points keep the model's
 own, view by view.
-``--config.model.test_time_handedness_reference=mean_shape`` turns it off.
+``--config.model.test_time_handedness_reference=mean_shape`` turns it off;
+``--config.model.test_time_handedness_reference=my_body.npy`` (or .json, .txt, .csv: one 3D
+example of your points, N rows of x, y, z, any pose, orientation and scale) gives the
+model's mean shape that example's handedness and every view the mean shape's, for points in
+any order (experiments/dev_suite, "The handedness from one 3D example").
 Subjects at different distances (``model.keypoint_scaling="auto"``: training views that
 look alike differ in size by more than 1.18x, median, as for people photographed at
 different distances, not a subject filmed at one) get each view scaled by its own size

@@ -220,7 +220,7 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
              r"^handedness_reference='h36m' \(a body of 17 points in its joint order; the "
              r"model has 7\)"),
             (p17, kp, vis, {"handedness_reference": "smpl"},
-             r"^handedness_reference='smpl' \(known: mean_shape, h36m, coco, auto\)"),
+             r"^handedness_reference='smpl' \(known: mean_shape, h36m, coco, body, auto\)"),
             (p17, kp, vis, {"handedness_reference": "auto"},
              r"^handedness_reference='auto' \(a training setting, resolved from the training "
              r"views"),

@@ -285,7 +285,9 @@ def test_a_body_reference_needs_its_joint_count_and_one_handedness():
     c.model.test_time_handedness_reference = "h63m"
     assert validation.config_problems(c) == [
         "config.model.test_time_handedness_reference='h63m' (must be one of 'mean_shape', "
-        "'h36m', 'coco', 'auto')"]
+        "'h36m', 'coco', 'body', 'auto', or a body file (.npy, .json, .txt, .csv))"]
+    c.model.test_time_handedness_reference = "my_rig.npy"  # read when training starts
+    assert validation.config_problems(c) == []
     c.model.test_time_handedness_reference = "auto"  # resolved from the training data
     assert validation.config_problems(c) == []
 

@@ -24,6 +24,12 @@ test views whose better orientation is the prediction itself rather than its dep
 near 1 or 0 when every view has the same handedness (0: the whole model is mirrored),
 0.5 when the sign is a coin toss per view, as a user without 3D ground truth would see it.
 
+``onebody --runs=DIR,DIR,...``: for trained runs of a motion-capture dataset with clips,
+the test error without the protocol's flip with the model's own handedness, its mean shape's,
+and the handedness of one 3D example of the points (the first frame of each clip in turn,
+``reconstruct(..., handedness_reference=frame)``): the lowest and highest over the clips,
+the fraction of clips at the lowest; then the flip-resolved error.
+
 ``camera --runs=DIR,DIR,...``: for trained runs, test MPJPE of the model and of its own
 canonical shapes under the camera with the least 2D error (the rigid baseline's fit): what
 the network's regressed camera costs or gains against an optimised one.
@@ -586,6 +592,34 @@ def handedness(run: str) -> list[float]:
     return out + [float(np.mean(np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))]
 
 
+def one_example_body(run: str) -> list[float]:
+    """The no-flip error with the model's own handedness, with its mean shape's
+    (``test_time_one_handedness``), and with the handedness of one 3D example of the points
+    (``handedness_reference=body``): the first frame of each clip of the run's motion capture
+    in turn, the lowest and highest of those and the fraction of clips within 0.001 of the
+    lowest; then the flip-resolved error."""
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    if dataset not in suite.MOCAP:
+        raise app.UsageError(f"{run}: onebody needs a run of one of {sorted(suite.MOCAP)}")
+    with np.load(os.path.join(FLAGS.data_root, "mocap",
+                              f"{dataset.removesuffix('_clips')}.npz")) as z:
+        frames, clip = np.swapaxes(z["X"], 1, 2), z["clip"]
+    test, model = _test_split_and_model(run)
+
+    def errors(**options):
+        per = _per_view(c3dpo_jax.reconstruct(model, test.kp, test.vis, **options).shape_3d,
+                        test)
+        return float(np.mean(per["mpjpe_orig"])), float(np.mean(
+            np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))
+
+    own, resolved = errors()
+    mean_shape = errors(one_handedness=True, handedness_reference="mean_shape")[0]
+    bodies = np.array([errors(handedness_reference=frames[np.flatnonzero(clip == c)[0]])[0]
+                       for c in np.unique(clip)])
+    return [own, mean_shape, bodies.min(), bodies.max(),
+            float(np.mean(bodies <= bodies.min() + 1e-3)), resolved]
+
+
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
 _H36M_PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
 PARENTS = {
@@ -826,6 +860,9 @@ def _run_tables() -> dict:
                         "no flip", *(c for body in BODIES for c in (
                             f"{body} body's handedness: sign agreement", "no flip")),
                         "flip-resolved"], handedness),
+        "onebody": (["no flip: own handedness", "mean shape's", "a clip's first frame as the "
+                     "body: lowest", "highest", "clips at the lowest", "flip-resolved"],
+                    one_example_body),
         "camera": (["model", "its shapes, least-2D-error camera"], camera_refit),
         "signs": (["sign agreement"], sign_agreement),
         "bones": (BONES_COLUMNS, bones),

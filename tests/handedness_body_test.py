@@ -1,0 +1,206 @@
+"""A body of the user's own points for the handedness at inference: one 3D example of the
+points, from an array or a file, in any position, orientation and scale, gives the model's
+mean shape its handedness and every view the mean shape's
+(``model.test_time_handedness_reference="body"``)."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from c3dpo_jax import C3DPOParams, model, reconstruct, train
+from c3dpo_jax.data import KeypointData
+from configs import default
+
+K = 9
+CFG = model.ModelConfig(n_keypoints=K, shape_basis_size=3, n_fully_connected=32, n_layers=1,
+                        canonicalization_n_layers=1, canonicalization_n_fully_connected=32,
+                        z_augment=True)
+
+
+def _rig(seed=0):
+    """A non-planar body of K points (a random 'skeleton' in no known joint order)."""
+    return np.random.default_rng(seed).normal(size=(K, 3)) * [1.0, 0.8, 0.5]
+
+
+def _orthogonal_residual(x, ref, proper):
+    """The least-squares residual of ``ref`` from ``x`` under the best proper rotation or
+    the best reflection (numpy SVD, both centred), an independent check of handedness."""
+    x, ref = x - x.mean(0), ref - ref.mean(0)
+    u, _, vt = np.linalg.svd(x.T @ ref)
+    d = np.sign(np.linalg.det(u @ vt)) * (1 if proper else -1)
+    rot = u @ np.diag([1.0, 1.0, d]) @ vt
+    return np.linalg.norm(x @ rot - ref)
+
+
+def _variables(seed, mean_shape):
+    """A model's variables with its basis' mean shape set to ``mean_shape`` (N, 3) (an
+    initialised one is 0, which has no handedness)."""
+    variables = model.init_variables(jax.random.key(seed), CFG)
+    params = jax.tree.map(lambda a: a, variables["params"])
+    for layout in (mean_shape, mean_shape.T):  # the basis' layout of the flat bias
+        params["shape_layer"]["bias"] = jnp.asarray(layout.reshape(-1), jnp.float32)
+        got = model._shape(model.make_network(CFG), params, jnp.zeros(CFG.shape_basis_size),
+                           jnp.ones(K))
+        if np.allclose(got, mean_shape, atol=1e-6):
+            return dict(variables, params=params)
+    raise AssertionError("the mean shape is not the shape layer's bias")
+
+
+def test_the_mean_shape_takes_the_body_s_handedness_in_any_pose_orientation_and_scale():
+    """``mean_shape_handed_as``: the basis' mean shape, or its mirror image, whichever a
+    proper rotation maps onto the body better (numpy's SVD); the same for the body turned,
+    moved and scaled, and the mirror image for the body's mirror image."""
+    variables = _variables(0, _rig(7))
+    net = model.make_network(CFG)
+    mean = np.asarray(model.mean_shape_handed_as(
+        net, variables["params"], jnp.ones(K), jnp.asarray(_rig(), jnp.float32)), np.float64)
+    assert _orthogonal_residual(mean, _rig(), True) < _orthogonal_residual(mean, _rig(), False)
+    moved = 3.0 * _rig() @ Rotation.random(random_state=5).as_matrix().T + [4.0, -2.0, 7.0]
+    for body, sign in ((moved, 1.0), (_rig() * [1.0, 1.0, -1.0], -1.0)):
+        got = model.mean_shape_handed_as(net, variables["params"], jnp.ones(K),
+                                         jnp.asarray(body, jnp.float32))
+        np.testing.assert_allclose(got, mean * [1.0, 1.0, sign], atol=1e-6)
+    # Whichever handedness the mean shape came out with, it ends with the body's.
+    for seed in range(1, 6):
+        v = _variables(seed, _rig(seed + 7) * np.array([1.0, 1.0, -1.0]) ** seed)
+        m = np.asarray(model.mean_shape_handed_as(net, v["params"], jnp.ones(K),
+                                                  jnp.asarray(_rig(), jnp.float32)))
+        assert _orthogonal_residual(m, _rig(), True) < _orthogonal_residual(m, _rig(), False)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"test_time_handedness_reference": "body"}, r"test_time_handedness_body is empty"),
+    ({"test_time_handedness_reference": "body", "test_time_handedness_body": ((0, 0, 1),) * K},
+     r"near one plane"),
+    ({"test_time_handedness_reference": "body",
+      "test_time_handedness_body": tuple(map(tuple, _rig()[:5]))},
+     r"a body of the model's 9 points, N rows of \(x, y, z\); got shape \(5, 3\)"),
+    ({"test_time_handedness_reference": "body",
+      "test_time_handedness_body": tuple(map(tuple, np.where(np.eye(K, 3) > 0, np.nan,
+                                                              _rig())))},
+     r"the body has NaN or inf"),
+    ({"test_time_handedness_body": tuple(map(tuple, _rig()))},
+     r"test_time_handedness_body is given but test_time_handedness_reference is "
+     r"'mean_shape', not 'body'"),
+    ({"test_time_handedness_reference": "my_rig.npy"},
+     r"a body file is read when training starts"),
+    ({"test_time_handedness_reference": "body", "test_time_handedness_body": (1, 2, 3)},
+     r"test_time_handedness_body=\(1, 2, 3\) \(rows of three numbers\)"),
+])
+def test_a_body_that_cannot_give_a_handedness_is_refused_in_one_line(change, message):
+    settings = dict(test_time_one_handedness=True, **change)
+    with pytest.raises(ValueError, match=message):
+        dataclasses.replace(CFG, **settings)
+
+
+def test_a_model_keeps_its_body_through_a_saved_config():
+    """The saved config (JSON: lists) gives back the same, hashable, config."""
+    cfg = dataclasses.replace(CFG, test_time_one_handedness=True,
+                              test_time_handedness_reference="body",
+                              test_time_handedness_body=tuple(map(tuple, _rig().tolist())))
+    again = model.ModelConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert again == cfg and hash(again) == hash(cfg)
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".json", ".txt", ".csv"])
+def test_a_body_file_is_read_and_a_bad_one_named(tmp_path, suffix):
+    body = _rig()
+    path = tmp_path / f"rig{suffix}"
+    if suffix == ".npy":
+        np.save(path, body)
+    elif suffix == ".json":
+        path.write_text(json.dumps(body.tolist()))
+    else:
+        sep = "," if suffix == ".csv" else " "
+        path.write_text("\n".join(sep.join(repr(v) for v in row) for row in body.tolist())
+                        + "\n")
+    np.testing.assert_array_equal(model.read_body(str(path)), body)
+    bad = tmp_path / f"bad{suffix}"
+    if suffix == ".npy":
+        np.save(bad, body[:, :2])
+        expected = r"holds an array of shape \(9, 2\); a body is N rows of \(x, y, z\)"
+    else:
+        bad.write_text("[[1, 2, 3], [4, 5]]" if suffix == ".json" else "1 2 3\n4 five 6\n")
+        expected = r"is not N rows of \(x, y, z\)"
+    with pytest.raises(ValueError, match=f"body file '.*bad{suffix}' {expected}"):
+        model.read_body(str(bad))
+    with pytest.raises(ValueError, match="does not exist"):
+        model.read_body(str(tmp_path / f"missing{suffix}"))
+
+
+def test_training_reads_the_body_file_into_the_model(tmp_path):
+    """``train.resolve_handedness``: a body file named in the config becomes the model's
+    "body" with one handedness on; a resumed run keeps the body it started with; a body of
+    another number of points is refused in one line."""
+    path = tmp_path / "rig.npy"
+    np.save(path, _rig())
+    c = default.get_config()
+    c.model.n_keypoints = K
+    c.model.test_time_handedness_reference = str(path)
+    data = KeypointData(kp=np.zeros((4, K, 2)), vis=np.ones((4, K)))  # not read for a file
+    got = train.resolve_handedness(c, data).model
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("body", True)
+    np.testing.assert_allclose(np.asarray(got.test_time_handedness_body), _rig())
+    model.ModelConfig.from_dict(got)  # a valid model config
+    earlier = {"model": {"test_time_handedness_reference": "body",
+                         "test_time_handedness_body": _rig(1).tolist()}}
+    kept = train.resolve_handedness(c, data, earlier).model
+    np.testing.assert_allclose(np.asarray(kept.test_time_handedness_body), _rig(1))
+    c.model.n_keypoints = K + 1
+    with pytest.raises(ValueError, match=r"rig.npy' \(a body of the model's 10 points"):
+        train.resolve_handedness(c, data)
+
+
+def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
+    """``reconstruct(..., handedness_reference=body)``: every view's canonical shape has the
+    handedness of the mean shape handed as the body (numpy's SVD), the 2D fit is the one
+    without it, a file gives the same, and the body's mirror image mirrors every view."""
+    variables = _variables(3, _rig() + 0.3 * _rig(9))  # a mean shape like the body
+    params = C3DPOParams(variables, CFG)
+    body = _rig()
+    kp = np.random.default_rng(4).normal(size=(6, K, 2))
+    vis = np.ones((6, K))
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(body.tolist()))
+    off = reconstruct(params, kp, vis)
+    on = reconstruct(params, kp, vis, handedness_reference=body)
+    from_file = reconstruct(params, kp, vis, handedness_reference=str(path))
+    mirror = reconstruct(params, kp, vis, handedness_reference=body * [1.0, 1.0, -1.0])
+    np.testing.assert_allclose(on.kp_reprojected, off.kp_reprojected, atol=1e-5)
+    np.testing.assert_allclose(from_file.shape_3d, on.shape_3d, atol=1e-6)
+    np.testing.assert_allclose(mirror.shape_canonical, on.shape_canonical * [1.0, 1.0, -1.0],
+                               atol=1e-5)
+    mean = np.asarray(model.mean_shape_handed_as(model.make_network(CFG), variables["params"],
+                                                 jnp.ones(K), jnp.asarray(body, jnp.float32)))
+    for x in on.shape_canonical:
+        assert _orthogonal_residual(x, mean, True) < _orthogonal_residual(x, mean, False)
+    with pytest.raises(ValueError, match=r"^handedness_reference: the body's points lie near"):
+        reconstruct(params, kp, vis, handedness_reference=np.zeros((K, 3)) + [0, 0, 1])
+
+
+def test_a_run_given_a_body_file_keeps_the_body_and_resumes(tmp_path):
+    """End to end: a run whose config names a body file saves the body with the model
+    (``load`` gives it back, one handedness on), and the same command resumes it."""
+    import c3dpo_jax
+
+    body = np.random.default_rng(0).normal(size=(8, 3))
+    np.save(tmp_path / "rig.npy", body)
+    c = default.apply_variants(default.get_config(), "smoke")
+    c.model.n_keypoints = c.data.synthetic.n_keypoints = 8
+    c.model.shape_basis_size = 3
+    c.model.test_time_handedness_reference = str(tmp_path / "rig.npy")
+    c.train.ckpt_every, c.train.progress_bar = 5, False
+    c.train.num_steps = 5
+    train.train_and_evaluate(c, str(tmp_path / "run"))
+    (tmp_path / "rig.npy").unlink()  # the model holds the body; the file is not read again
+    c.train.num_steps = 10
+    out = train.train_and_evaluate(c, str(tmp_path / "run"))
+    assert out["final"]["step"] == 10
+    got = c3dpo_jax.load(str(tmp_path / "run")).config
+    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("body", True)
+    np.testing.assert_allclose(np.asarray(got.test_time_handedness_body), body)
