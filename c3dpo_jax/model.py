@@ -209,7 +209,8 @@ class ModelConfig:
     test_time_handedness_reference: str = "mean_shape"
     # With test_time_handedness_reference="body": one 3D example of the points, N rows of
     # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
-    # motion capture, a rig's rest pose): every view is given its handedness.
+    # motion capture, a rig's rest pose): the basis' mean shape takes its handedness and
+    # every view the mean shape's (``mean_shape_handed_as``).
     test_time_handedness_body: tuple = ()
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",

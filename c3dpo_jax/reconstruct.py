@@ -317,12 +317,14 @@ def _warn_if_not_the_body(cfg: ModelConfig, canonical: np.ndarray) -> None:
         return
     distance = float(np.median(body_distance(canonical, np.asarray(body))))
     if distance > BODY_DISTANCE_WARNING:
+        name = cfg.test_time_handedness_reference
         logging.warning(
-            "the views' shapes are far from the %r body whose handedness they were given "
-            "(median distance %.2f up to a rotation, mirror and scale; views in its joint order "
-            "are within about 0.5, shuffled points about 1.3): check that the points are in its "
-            "joint order (model.HANDEDNESS_REFERENCES), or the handedness may be wrong",
-            cfg.test_time_handedness_reference, distance)
+            "the views' shapes are far from %s whose handedness they were given (median "
+            "distance %.2f up to a rotation, mirror and scale; views in its joint order are "
+            "within about 0.5, shuffled points about 1.3): check that the points are in its "
+            "joint order (%s), or the handedness may be wrong",
+            "the given body" if name == "body" else f"the {name!r} body", distance,
+            "the model's" if name == "body" else "model.HANDEDNESS_REFERENCES")
 
 
 def _count(name: str, value, least: int) -> int:
