@@ -209,8 +209,9 @@ class ModelConfig:
     test_time_handedness_reference: str = "mean_shape"
     # With test_time_handedness_reference="body": one 3D example of the points, N rows of
     # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
-    # motion capture, a rig's rest pose): the basis' mean shape takes its handedness and
-    # every view the mean shape's (``mean_shape_handed_as``).
+    # motion capture, a rig's rest pose): each view weighs how much nearer it is to the
+    # example than to its mirror image with the same for the basis' mean shape given the
+    # example's handedness (``mean_shape_handed_as``, ``one_handedness``).
     test_time_handedness_body: tuple = ()
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
@@ -728,12 +729,27 @@ def mean_shape_handed_as(net, params, class_mask, body):
     """The basis' mean shape, mirrored (third axis negated) when it is nearer, up to a
     proper rotation, to the mirror image of ``body`` (N, 3) than to the body. A user's body
     (``test_time_handedness_reference="body"``) is one example in one pose, which the views
-    of other poses may not resemble; the mean shape, the model's typical pose, does. So
-    every view takes the mean shape's handedness and the mean shape, once, the body's."""
+    of other poses may not resemble; the mean shape, the model's typical pose, may. So a
+    view weighs both (``one_handedness`` with the two references)."""
     mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
     mirrored = jnp.linalg.det(_class_centred(mean, class_mask).T
                               @ _class_centred(body, class_mask)) < 0
     return mean * jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)[None]
+
+
+def handedness_evidence(x, reference, class_mask):
+    """How much better a proper rotation than a reflection maps the shape ``x`` (N, 3) onto
+    ``reference``: ``(r_mirror - r_proper) / (r_mirror + r_proper)`` of the two Procrustes
+    residuals of the centred, unit-size shapes, in [-1, 1] (negative: nearer the mirror
+    image)."""
+    a, b = (_class_centred(y, class_mask) for y in (x, reference))
+    a, b = (y / jnp.maximum(jnp.linalg.norm(y), 1e-12) for y in (a, b))
+    cov = a.T @ b
+    sigma = jnp.linalg.svd(cov, compute_uv=False)
+    third = jnp.sign(jnp.linalg.det(cov)) * sigma[2]
+    proper, mirror = (jnp.sqrt(jnp.maximum(2.0 - 2.0 * (sigma[0] + sigma[1] + sign * third),
+                                           0.0)) for sign in (1.0, -1.0))
+    return (mirror - proper) / jnp.maximum(mirror + proper, 1e-12)
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):
@@ -741,7 +757,9 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     ``x_canon`` is nearer, up to a proper rotation, to the mirror image of ``reference``
     (N, 3), by default the basis' mean shape, than to the reference itself (the best
     orthogonal map from one centred shape onto the other is then a reflection: det of their
-    cross-covariance < 0; comparing the two Procrustes residuals says the same). The mirror image:
+    cross-covariance < 0; comparing the two Procrustes residuals says the same). With a
+    tuple of references, mirrored when the sum of their ``handedness_evidence`` is
+    negative. The mirror image:
     the camera-frame depth reflected about the translation's (``t``; an orthographic view's
     2D points unchanged), the canonical shape's third axis negated and the rotation
     conjugated by that reflection (``theta``'s first two components negated), so that
@@ -749,8 +767,11 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     mirrored, else 0.0."""
     if reference is None:
         reference = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
-    mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
-                              @ _class_centred(reference, class_mask)) < 0
+    if isinstance(reference, tuple):
+        mirrored = sum(handedness_evidence(x_canon, r, class_mask) for r in reference) < 0
+    else:
+        mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
+                                  @ _class_centred(reference, class_mask)) < 0
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
@@ -877,8 +898,9 @@ def forward_eval(
             raise ValueError(f"test_time_one_handedness=True ({problem})")
         reference = handedness_reference(cfg.test_time_handedness_reference,
                                          cfg.test_time_handedness_body)
-        if cfg.test_time_handedness_reference == "body":
-            reference = mean_shape_handed_as(net, variables["params"], class_mask, reference)
+        if cfg.test_time_handedness_reference == "body":  # the example and the mean shape
+            reference = (reference, mean_shape_handed_as(net, variables["params"], class_mask,
+                                                         reference))
         x_cam, x_canon, rot, theta, flipped = one_handedness(
             net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask, reference)
     proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)

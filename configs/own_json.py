@@ -38,8 +38,8 @@ experiments/dev_suite, "The handedness of a human body"); other points keep the 
 own, view by view.
 ``--config.model.test_time_handedness_reference=mean_shape`` turns it off;
 ``--config.model.test_time_handedness_reference=my_body.npy`` (or .json, .txt, .csv: one 3D
-example of your points, N rows of x, y, z, any pose, orientation and scale) gives the
-model's mean shape that example's handedness and every view the mean shape's, for points in
+example of your points, N rows of x, y, z, any pose, orientation and scale) gives every
+view that example's handedness, weighed with the model's mean shape given it, for points in
 any order (experiments/dev_suite, "The handedness from one 3D example").
 Subjects at different distances (``model.keypoint_scaling="auto"``: training views that
 look alike differ in size by more than 1.18x, median, as for people photographed at

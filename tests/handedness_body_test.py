@@ -157,14 +157,18 @@ def test_training_reads_the_body_file_into_the_model(tmp_path):
 
 
 def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
-    """``reconstruct(..., handedness_reference=body)``: every view's canonical shape has the
-    handedness of the mean shape handed as the body (numpy's SVD), the 2D fit is the one
+    """``reconstruct(..., handedness_reference=body)``: each view weighs the body and the
+    mean shape handed as the body (checked with numpy's SVD), the 2D fit is the one
     without it, a file gives the same, and the body's mirror image mirrors every view."""
     variables = _variables(3, _rig() + 0.3 * _rig(9))  # a mean shape like the body
+    # Large basis vectors, so that the views' shapes differ enough to take both sides.
+    kernel = variables["params"]["shape_layer"]["kernel"]
+    variables["params"]["shape_layer"]["kernel"] = 50.0 * jax.random.normal(
+        jax.random.key(8), kernel.shape)
     params = C3DPOParams(variables, CFG)
     body = _rig()
-    kp = np.random.default_rng(4).normal(size=(6, K, 2))
-    vis = np.ones((6, K))
+    kp = np.random.default_rng(4).normal(size=(12, K, 2))
+    vis = np.ones((12, K))
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(body.tolist()))
     off = reconstruct(params, kp, vis)
@@ -175,10 +179,25 @@ def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
     np.testing.assert_allclose(from_file.shape_3d, on.shape_3d, atol=1e-6)
     np.testing.assert_allclose(mirror.shape_canonical, on.shape_canonical * [1.0, 1.0, -1.0],
                                atol=1e-5)
+    # Each view is mirrored when the sum, over the body and the mean shape handed as the
+    # body, of (mirror residual - proper residual) / their sum is negative (numpy's SVD).
     mean = np.asarray(model.mean_shape_handed_as(model.make_network(CFG), variables["params"],
                                                  jnp.ones(K), jnp.asarray(body, jnp.float32)))
-    for x in on.shape_canonical:
-        assert _orthogonal_residual(x, mean, True) < _orthogonal_residual(x, mean, False)
+    assert _orthogonal_residual(mean, body, True) < _orthogonal_residual(mean, body, False)
+
+    def evidence(x, ref):
+        x, ref = (y - y.mean(0) for y in (x, ref))
+        x, ref = x / np.linalg.norm(x), ref / np.linalg.norm(ref)
+        proper, mirror = (_orthogonal_residual(x, ref, p) for p in (True, False))
+        return (mirror - proper) / (mirror + proper)
+
+    flips = []
+    for x_own, x_on in zip(off.shape_canonical, on.shape_canonical, strict=True):
+        mirrored = evidence(x_own, body) + evidence(x_own, mean) < 0
+        flips.append(mirrored)
+        np.testing.assert_allclose(x_on, x_own * ([1.0, 1.0, -1.0] if mirrored else 1.0),
+                                   atol=1e-5)
+    assert len(set(flips)) == 2  # views of both kinds: the rule is seen at work
     with pytest.raises(ValueError, match=r"^handedness_reference: the body's points lie near"):
         reconstruct(params, kp, vis, handedness_reference=np.zeros((K, 3)) + [0, 0, 1])
 
