@@ -69,6 +69,17 @@ def canonicalisation(canon: Float[Array, "B S"]) -> Float[Array, ""]:
     return jnp.mean(canon)
 
 
+def multiview(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"], views: int,
+              scaling: float) -> Float[Array, ""]:
+    """Mean over views of the mean, over the class's points, of the pseudo-Huber penalty of
+    each point's squared distance from its group's mean canonical shape; the batch is
+    ``B / views`` groups of ``views`` consecutive views of one frame."""
+    groups = x_canon.reshape(-1, views, *x_canon.shape[1:])
+    dist_sq = jnp.sum((groups - jnp.mean(groups, axis=1, keepdims=True)) ** 2, axis=-1)
+    return jnp.mean(jax.vmap(geometry.masked_mean)(huber(dist_sq.reshape(x_canon.shape[:2]),
+                                                         scaling), class_mask))
+
+
 def supervised_problem(weight: float, projection_type: str) -> str:
     """'' or why ``w_supervised`` cannot be ``weight`` with ``projection_type`` (the camera
     frame's depth is compared up to a shift: orthographic models only)."""
@@ -144,7 +155,14 @@ class LossConfig:
     ``w_supervised`` (0: C3DPO, which never sees 3D) weights the mean distance of the
     camera-frame shape's points to the training views' 3D ground truth (both centred): the
     same network trained with the truth, the reference of what one view's points allow
-    (experiments/dev_suite). Its training split needs 3D points."""
+    (experiments/dev_suite). Its training split needs 3D points.
+
+    ``w_multiview`` (0: C3DPO, which lifts each view alone) weights the agreement of the
+    canonical shapes of views that show one pose at one instant (cameras filming together:
+    the training split's ``frame`` ids): each batch is made of groups of
+    ``multiview_views`` views of one frame, and the term is the pseudo-Huber penalty of each
+    view's squared point distances from its group's mean canonical shape. Not in the paper
+    (experiments/dev_suite, "Multi-view training data")."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0
@@ -157,6 +175,8 @@ class LossConfig:
     huber_scaling: float = 0.01
     reprojection_normalization: str = "kp_total_count"
     squared_reprojection_loss: bool = False
+    w_multiview: float = 0.0
+    multiview_views: int = 3
 
     def __post_init__(self):
         if self.reprojection_normalization not in NORMALIZATIONS:
@@ -239,6 +259,11 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             # Only with the prior on: without it the objective is the paper's, op for op.
             objective = objective + loss_cfg.deformation_weight(step) * l_deform
         extra = {}
+        if loss_cfg.w_multiview:
+            extra["loss/multiview"] = multiview(terms["x_canon"], batch["class_mask"],
+                                                loss_cfg.multiview_views,
+                                                loss_cfg.huber_scaling)
+            objective = objective + loss_cfg.w_multiview * extra["loss/multiview"]
         if kp3d is not None:
             extra["loss/supervised"] = supervised(terms["sup_dist_sq"], batch["class_mask"])
             objective = objective + loss_cfg.w_supervised * extra["loss/supervised"]

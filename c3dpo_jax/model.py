@@ -463,8 +463,9 @@ def forward_train(
       deformation); with the example's 3D ground truth ``kp3d`` (camera frame, the input's
       units; orthographic models), also ``sup_dist_sq`` (N,), the squared distance of each
       point of the camera-frame shape to it, both centred on their class's points, in the
-      network's input units. The updated BatchNorm statistics. ``losses`` penalises and
-      reduces them.
+      network's input units; ``x_canon`` (N, 3), the canonical shape (``losses.multiview``
+      compares those of one frame's views). The updated BatchNorm statistics. ``losses``
+      penalises and reduces them.
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
@@ -502,7 +503,7 @@ def forward_train(
     _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     mean_shape = _shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
-             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1)}
+             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1), "x_canon": x_canon}
     if kp3d is not None:
         terms["sup_dist_sq"] = jnp.sum((_class_centred(x_cam, class_mask) - _class_centred(
             kp3d * scale, class_mask)) ** 2, axis=-1)

@@ -89,8 +89,10 @@ def make_train_step(model_cfg, loss_cfg, tx: optax.GradientTransformation, sched
     return train_step
 
 
-def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
-    """``chunk(state, data, train_key, n_steps)``: ``n_steps`` steps in one ``lax.scan``.
+def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
+                     views: int = 0):
+    """``chunk(state, data, train_key, n_steps)``: ``n_steps`` steps in one ``lax.scan``
+    (``views``: with frame tables in ``data``, the views drawn per frame).
 
     With ``mesh``, pass ``replicate``d state and data: each batch is split over the
     mesh's ``"data"`` axis (``batch_size`` must be a multiple of its size).
@@ -100,11 +102,11 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None):
     split = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
 
     def chunk(state: TrainState, data, train_key, n_steps: int):
-        per_sample = {k: v for k, v in data.items() if k not in ("class_start", "class_count")}
+        per_sample = {k: v for k, v in data.items() if k not in device_data.TABLES}
 
         def body(state, _):
             k_idx, k_step = jax.random.split(jax.random.fold_in(train_key, state.step))
-            idx = device_data.sample_indices(data, k_idx, batch_size)
+            idx = device_data.sample_indices(data, k_idx, batch_size, views)
             batch = jax.tree.map(lambda a: a[idx], per_sample)
             if split is not None:
                 batch = jax.lax.with_sharding_constraint(batch, split)
@@ -529,11 +531,14 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     elif init_from:
         state = _start_from(state, init_from)
     run_records.trim_metrics(workdir, step)
-    data = device_data.device_train_data(train_data, config.data.class_balanced, with_3d=with_3d)
+    by_frame = spec.loss.w_multiview > 0
+    data = device_data.device_train_data(train_data, config.data.class_balanced, with_3d=with_3d,
+                                         by_frame=by_frame)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
-    chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh),
+    chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh,
+                                     spec.loss.multiview_views if by_frame else 0),
                     static_argnames="n_steps", donate_argnums=0)
     eval_fn = jax.jit(make_eval_fn(spec.model))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size

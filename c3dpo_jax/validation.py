@@ -140,6 +140,8 @@ RULES: dict[str, Range | OneOf] = {
     "loss.w_canonicalization": NON_NEGATIVE,
     "loss.w_deformation": NON_NEGATIVE,
     "loss.w_supervised": NON_NEGATIVE,
+    "loss.w_multiview": NON_NEGATIVE,
+    "loss.multiview_views": Range(lo=2, integer=True),
     "optim.optimizer": OneOf(OPTIMIZERS),
     "optim.lr": POSITIVE,
     "optim.momentum": Range(lo=0, hi=1, hi_open=True),
@@ -231,6 +233,16 @@ def _cross_field(cfg: dict) -> list[str]:
         if ramp is not _MISSING:
             problems.append(losses.ramp_problem(ramp, None if final is _MISSING else final,
                                                 term))
+    weight, views, batch = (get(k) for k in ("loss.w_multiview", "loss.multiview_views",
+                                             "train.batch_size"))
+    if isinstance(weight, int | float) and weight > 0 and isinstance(views, int) and \
+            isinstance(batch, int) and views >= 2 and batch % views:
+        problems.append(f"config.train.batch_size={batch} (loss.w_multiview > 0 makes batches "
+                        f"of groups of loss.multiview_views={views} views: a multiple of "
+                        f"{views}, e.g. {batch - batch % views})")
+    if isinstance(weight, int | float) and weight > 0 and get("data.class_balanced") is True:
+        problems.append("config.loss.w_multiview > 0 draws whole frames, not classes: set "
+                        "config.data.class_balanced=False")
     problems = [p for p in problems if p]
     if get("train.num_steps") == 0 and get("train.epochs") == 0:
         problems.append(

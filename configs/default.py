@@ -70,14 +70,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # and the options of the terms (the release keeps them with the model); w_deformation
     # (not in the paper: 0) weights a Gaussian prior on the deformations, deformation_ramp
     # and w_deformation_final ramp it as the canonicalisation weight; w_supervised (not
-    # C3DPO: 0) weights the distance to the training split's 3D ground truth.
+    # C3DPO: 0) weights the distance to the training split's 3D ground truth; w_multiview
+    # (not in the paper: 0) the agreement of the canonical shapes of one frame's views, in
+    # batches of groups of multiview_views views of a frame (the split's frame ids).
     c.loss = dict(
         w_reprojection=1.0, w_canonicalization=1.0,
         w_canonicalization_final=ml_collections.config_dict.placeholder(float),
         canonicalization_ramp=(), w_deformation=0.0,
         w_deformation_final=ml_collections.config_dict.placeholder(float), deformation_ramp=(),
         w_supervised=0.0, huber_scaling=0.01, reprojection_normalization="kp_total_count",
-        squared_reprojection_loss=False,
+        squared_reprojection_loss=False, w_multiview=0.0, multiview_views=3,
     )
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,

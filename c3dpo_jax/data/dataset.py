@@ -6,7 +6,9 @@ Glossary: M samples, N keypoints. Keypoints ``kp (M, N, 2)``, visibility
 frame, optional ``class_mask (M, N)``, ``kp_defined (M, N)``, ``intrinsics (M, 3, 3)``,
 ``scale (M,)`` (h36m's metric scale), ``group (M,)`` integer ids with
 ``group_names`` (actions for h36m, classes for multi-class data) used by the
-evaluation protocol, and ``image_path (M,)`` strings when the source names images.
+evaluation protocol, ``image_path (M,)`` strings when the source names images, and
+``frame (M,)`` integer ids when several views show one pose at one instant (cameras filming
+together; views with equal ids are that pose's views, ``loss.w_multiview`` links them).
 """
 
 import dataclasses
@@ -29,6 +31,7 @@ class KeypointData:
     group_names: tuple[str, ...] = ()
     name: str = ""
     image_path: np.ndarray | None = None  # (M,) str, when the JSON entries name images
+    frame: np.ndarray | None = None  # (M,) int: equal ids, one pose seen by several cameras
 
     def __post_init__(self):
         m, n = self.vis.shape
@@ -36,7 +39,7 @@ class KeypointData:
             raise ValueError(f"kp has shape {self.kp.shape}, expected {(m, n, 2)} (from vis)")
         for field, tail in (("kp3d", (n, 3)), ("class_mask", (n,)), ("kp_defined", (n,)),
                             ("intrinsics", (3, 3)), ("scale", ()), ("group", ()),
-                            ("image_path", ())):
+                            ("image_path", ()), ("frame", ())):
             value = getattr(self, field)
             if value is not None and value.shape != (m, *tail):
                 raise ValueError(f"{field} has shape {value.shape}, expected {(m, *tail)}")

@@ -177,8 +177,8 @@ def to_y_up(x: np.ndarray, up: str) -> np.ndarray:
     return x @ _TO_Y_UP[up].T
 
 
-def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_visible, rng,
-           name, scale):
+def _views(x, frames, *, views_per_frame, cameras, max_elevation, occlusion, noise,
+           min_visible, rng, name, scale):
     f, k, _ = x.shape
     m = f * views_per_frame
     rots = (random_rotations(rng, m) if cameras == "uniform"
@@ -189,7 +189,8 @@ def _views(x, *, views_per_frame, cameras, max_elevation, occlusion, noise, min_
     np.put_along_axis(vis, keep, 1.0, axis=1)
     kp = (kp3d[..., :2] + noise * rng.normal(size=(m, k, 2))) * vis[..., None]
     return KeypointData(kp=kp.astype(np.float32), vis=vis, kp3d=kp3d.astype(np.float32),
-                        scale=np.full(m, scale, np.float32), name=name)
+                        scale=np.full(m, scale, np.float32), name=name,
+                        frame=np.repeat(frames, views_per_frame))
 
 
 def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: str = "upright",
@@ -205,6 +206,8 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
 
     ``scale`` of each sample holds the factor that was divided out, so errors times
     ``scale`` are in the sequence's units. ``noise`` is 2D noise in normalised units.
+    ``frame`` of each sample is the index in ``x`` of the frame it shows (the
+    ``views_per_frame`` views of a frame share it).
     """
     if x.ndim != 3 or x.shape[2] != 3:
         raise ValueError(f"a sequence must be (F, K, 3), got {x.shape}")
@@ -241,8 +244,8 @@ def views_from_sequence(x: np.ndarray, *, views_per_frame: int = 10, cameras: st
     common = dict(views_per_frame=views_per_frame, cameras=cameras, max_elevation=max_elevation,
                   occlusion=occlusion, noise=noise, min_visible=min(min_visible, x.shape[1]),
                   rng=rng, scale=scale)
-    return (_views(x[~test], name=f"{name}_train", **common),
-            _views(x[test], name=f"{name}_test", **common))
+    return (_views(x[~test], np.flatnonzero(~test), name=f"{name}_train", **common),
+            _views(x[test], np.flatnonzero(test), name=f"{name}_test", **common))
 
 
 def parse_bvh(text: str):

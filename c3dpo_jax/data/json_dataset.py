@@ -3,10 +3,11 @@
 A file is a JSON list of entries, or ``{"dataset": name, "data": [...]}``. Each entry
 has ``kp_loc`` (2 x N) and ``kp_vis`` (N,), and optionally ``kp_loc_3d`` (3 x N),
 ``class_mask`` (N,), ``kp_defined`` (N,), ``K`` (3 x 3 intrinsics), ``image_path``,
-``h36m_info`` (``scale``, ``action_name``) and ``p3d_info`` (``p3d_class``, ``bbox``
-[x, y, w, h]). The ``2 x N`` layout is transposed here, once, to points-on-the-last-axis.
-PASCAL3D+ rule (as in the release): keypoints outside the bbox enlarged by 10% on
-each side are made invisible.
+``frame_id`` (an integer shared by the views of one pose filmed at one instant: not in the
+release's files, the importer writes it), ``h36m_info`` (``scale``, ``action_name``) and
+``p3d_info`` (``p3d_class``, ``bbox`` [x, y, w, h]). The ``2 x N`` layout is transposed
+here, once, to points-on-the-last-axis. PASCAL3D+ rule (as in the release): keypoints
+outside the bbox enlarged by 10% on each side are made invisible.
 
 Validation (``checks``) names the entry index and field of every problem: a missing
 field, a ragged list, a keypoint count N that differs from the other entries, NaN/inf
@@ -33,7 +34,7 @@ from absl import logging
 from c3dpo_jax.data import checks
 from c3dpo_jax.data.dataset import KeypointData
 
-CACHE_VERSION = 4
+CACHE_VERSION = 5
 _OPTIONAL = (("kp_loc_3d", 3, True), ("class_mask", None, False), ("kp_defined", None, False))
 
 
@@ -101,6 +102,23 @@ def _optional_fields(entries, n: int, problems: checks.Problems) -> dict:
     return out
 
 
+def _frame_ids(entries, problems: checks.Problems) -> dict:
+    """``{"frame": (M,) int64}`` when the entries carry ``frame_id`` (an integer each)."""
+    present = ["frame_id" in e for e in entries]
+    if not any(present):
+        return {}
+    ids = np.zeros(len(entries), np.int64)
+    for i, e in enumerate(entries):
+        value = e.get("frame_id")
+        if not present[i]:
+            problems.add(i, "field 'frame_id' is missing (other entries have it)")
+        elif isinstance(value, bool) or not isinstance(value, int):
+            problems.add(i, f"field 'frame_id' must be an integer, not {value!r}")
+        else:
+            ids[i] = value
+    return {"frame": ids}
+
+
 def _info_fields(entries) -> dict:
     out = {}
     if all("image_path" in e for e in entries):
@@ -146,6 +164,7 @@ def parse(obj, name: str = "", *, min_visible: int = 2, drop_invalid: bool = Fal
     checks.check_keypoints(kp, vis, min_visible, problems)
     fields = _optional_fields(ok, n, problems)
     fields.update(_info_fields(ok))
+    fields.update(_frame_ids(ok, problems))
     keep = problems.raise_or_drop(len(entries), drop_invalid, label)
     if len(keep) == 0:
         raise ValueError(f"{label}: every entry is invalid")
@@ -254,6 +273,8 @@ def to_json_entries(data: KeypointData) -> list[dict]:
                 entry[key] = (value[i].T if transpose else value[i]).tolist()
         if data.image_path is not None:
             entry["image_path"] = str(data.image_path[i])
+        if data.frame is not None:
+            entry["frame_id"] = int(data.frame[i])
         if data.class_mask is not None and data.group is not None and data.group_names:
             entry["p3d_info"] = {"p3d_class": data.group_names[data.group[i]]}
         elif data.scale is not None or (data.group is not None and data.group_names):
