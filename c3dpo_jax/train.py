@@ -99,6 +99,9 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
     """
     if mesh is not None and batch_size % mesh.size:
         raise ValueError(f"batch_size {batch_size} is not a multiple of {mesh.size} devices")
+    if views and batch_size % views:
+        raise ValueError(f"batch_size {batch_size} is not a multiple of the {views} views "
+                         "drawn per frame (loss.multiview_views)")
     split = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
 
     def chunk(state: TrainState, data, train_key, n_steps: int):

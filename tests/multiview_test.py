@@ -121,6 +121,8 @@ def test_the_config_is_checked():
         "config.loss.w_multiview > 0 draws whole frames, not classes: set "
         "config.data.class_balanced=False"]
     c.data.class_balanced = False
+    with pytest.raises(ValueError, match="batch_size 256 is not a multiple of the 3 views"):
+        train.make_train_chunk(lambda *a: a, 256, views=3)
     c.loss.multiview_views = 1
     assert len(validation.config_problems(c)) == 1
     assert validation.config_problems(c)[0].startswith("config.loss.multiview_views=1")
