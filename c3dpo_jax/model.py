@@ -15,6 +15,8 @@ weights, with their options in ``losses.LossConfig``).
 import contextlib
 import dataclasses
 import functools
+import json
+import os
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -209,9 +211,9 @@ class ModelConfig:
     test_time_handedness_reference: str = "mean_shape"
     # With test_time_handedness_reference="body": one 3D example of the points, N rows of
     # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
-    # motion capture, a rig's rest pose): each view weighs how much nearer it is to the
-    # example than to its mirror image with the same for the basis' mean shape given the
-    # example's handedness (``mean_shape_handed_as``, ``one_handedness``).
+    # motion capture, a rig's rest pose): each view takes the handedness that two references
+    # favour together, the example and the basis' mean shape given the example's handedness
+    # (``mean_shape_handed_as``, ``handedness_evidence``, ``one_handedness``).
     test_time_handedness_body: tuple = ()
     # Matmul precision of the forward passes (params stay float32): "default" (the
     # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
@@ -630,9 +632,6 @@ def read_body(path: str) -> np.ndarray:
     """The (N, 3) body in ``path``: a ``.npy`` array, a ``.json`` list of N ``[x, y, z]``,
     or ``.txt`` / ``.csv`` text of N rows of three numbers (spaces or commas). One-line
     ``ValueError`` for a file that cannot be read as that."""
-    import json
-    import os
-
     path = os.path.expanduser(path)
     if not os.path.exists(path):
         raise ValueError(f"body file {path!r} does not exist")
