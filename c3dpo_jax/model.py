@@ -732,9 +732,16 @@ def mean_shape_handed_as(net, params, class_mask, body):
     of other poses may not resemble; the mean shape, the model's typical pose, may. So a
     view weighs both (``one_handedness`` with the two references)."""
     mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
-    mirrored = jnp.linalg.det(_class_centred(mean, class_mask).T
-                              @ _class_centred(body, class_mask)) < 0
-    return mean * jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)[None]
+    return mean * jnp.where(_nearer_mirror(mean, body, class_mask),
+                            jnp.array([1.0, 1.0, -1.0]), 1.0)[None]
+
+
+def _nearer_mirror(x, reference, class_mask):
+    """Whether the best orthogonal map of the centred shape ``x`` onto ``reference`` is a
+    reflection (det of their cross-covariance < 0): ``x`` is nearer, up to a proper
+    rotation, to the reference's mirror image than to the reference."""
+    return jnp.linalg.det(_class_centred(x, class_mask).T
+                          @ _class_centred(reference, class_mask)) < 0
 
 
 def handedness_evidence(x, reference, class_mask):
@@ -770,8 +777,7 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     if isinstance(reference, tuple):
         mirrored = sum(handedness_evidence(x_canon, r, class_mask) for r in reference) < 0
     else:
-        mirrored = jnp.linalg.det(_class_centred(x_canon, class_mask).T
-                                  @ _class_centred(reference, class_mask)) < 0
+        mirrored = _nearer_mirror(x_canon, reference, class_mask)
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F

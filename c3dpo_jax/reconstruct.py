@@ -369,12 +369,11 @@ def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
             raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
         changes.update(test_time_one_handedness=bool(one_handedness))
     body = cfg.test_time_handedness_body
-    if handedness_reference is not None and not isinstance(handedness_reference, str):
-        body, handedness_reference = handedness_reference, "body"  # an (N, 3) body
-        if why := model.body_problem(body, cfg.n_keypoints):
-            raise ValueError(f"handedness_reference: {why}")
-    elif model.is_body_file(handedness_reference):
-        body, handedness_reference = model.read_body(handedness_reference), "body"
+    if handedness_reference is not None and (not isinstance(handedness_reference, str)
+                                             or model.is_body_file(handedness_reference)):
+        body = (model.read_body(handedness_reference) if isinstance(handedness_reference, str)
+                else handedness_reference)  # an (N, 3) body, or a file of one
+        handedness_reference = "body"
         if why := model.body_problem(body, cfg.n_keypoints):
             raise ValueError(f"handedness_reference: {why}")
     if handedness_reference is not None:

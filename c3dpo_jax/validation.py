@@ -235,12 +235,13 @@ def _cross_field(cfg: dict) -> list[str]:
                                                 term))
     weight, views, batch = (get(k) for k in ("loss.w_multiview", "loss.multiview_views",
                                              "train.batch_size"))
-    if isinstance(weight, int | float) and weight > 0 and isinstance(views, int) and \
-            isinstance(batch, int) and views >= 2 and batch % views:
+    multiview = isinstance(weight, int | float) and weight > 0
+    if multiview and isinstance(views, int) and isinstance(batch, int) and views >= 2 and \
+            batch % views:
         problems.append(f"config.train.batch_size={batch} (loss.w_multiview > 0 makes batches "
                         f"of groups of loss.multiview_views={views} views: a multiple of "
                         f"{views}, e.g. {batch - batch % views})")
-    if isinstance(weight, int | float) and weight > 0 and get("data.class_balanced") is True:
+    if multiview and get("data.class_balanced") is True:
         problems.append("config.loss.w_multiview > 0 draws whole frames, not classes: set "
                         "config.data.class_balanced=False")
     problems = [p for p in problems if p]

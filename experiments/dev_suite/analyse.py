@@ -256,12 +256,18 @@ def _pca_fit_2d(train, test, n_basis: int) -> np.ndarray:
                                      test.vis)
 
 
-def per_clip(run: str) -> list[tuple[str, int, float, float]]:
+def _mocap_run(run: str, command: str) -> tuple[str, str]:
+    """``(dataset, its sequence file)`` of a run of a motion-capture set with clips."""
     dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
     if dataset not in suite.MOCAP:
-        raise app.UsageError(f"{run}: clips needs a run of one of {sorted(suite.MOCAP)}")
+        raise app.UsageError(f"{run}: {command} needs a run of one of {sorted(suite.MOCAP)}")
+    return dataset, os.path.join(FLAGS.data_root, "mocap",
+                                 f"{dataset.removesuffix('_clips')}.npz")
+
+
+def per_clip(run: str) -> list[tuple[str, int, float, float]]:
+    dataset, path = _mocap_run(run, "clips")
     info = suite.make_data(dataset, FLAGS.data_root, FLAGS.out)
-    path = os.path.join(FLAGS.data_root, "mocap", f"{dataset.removesuffix('_clips')}.npz")
     clip = importers.load_clips(path)
     with np.load(path) as z:
         names = [str(n) for n in z["clip_names"]]
@@ -597,11 +603,8 @@ def one_example_body(run: str) -> list[float]:
     (``test_time_one_handedness``), and with the handedness of one 3D example of the points
     (``handedness_reference=body``): the first frame of each clip of the run's motion capture
     in turn, the lowest, median and highest of those; then the flip-resolved error."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
-    if dataset not in suite.MOCAP:
-        raise app.UsageError(f"{run}: onebody needs a run of one of {sorted(suite.MOCAP)}")
-    with np.load(os.path.join(FLAGS.data_root, "mocap",
-                              f"{dataset.removesuffix('_clips')}.npz")) as z:
+    _, path = _mocap_run(run, "onebody")
+    with np.load(path) as z:
         frames, clip = np.swapaxes(z["X"], 1, 2), z["clip"]
     test, model = _test_split_and_model(run)
 
