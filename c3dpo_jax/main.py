@@ -116,9 +116,11 @@ def main(argv):
         print(f"{_method(config)} scored with inference options other than the training's: "
               f"{options}")
     if "mpjpe" in results["final"]:
-        print("mpjpe: per view the better of the 3D prediction and its depth mirror image (the "
-              "protocol); mpjpe_orig: the prediction as it is; stress: the error of the "
-              "distances between points")
+        print("mpjpe_global: the 3D prediction as it is or every view mirrored, the better "
+              "(what you get, up to one mirror flip of the whole set); mpjpe: per view the "
+              "better of the prediction and its mirror image (the paper's protocol); "
+              "mpjpe_orig: the prediction as it is; stress: the error of the distances between "
+              "points")
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape, as the model "
               "lifts it before any handedness given at inference, has the other handedness "

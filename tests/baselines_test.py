@@ -241,3 +241,39 @@ def test_visible_mean_averages_only_visible_points_with_leading_axes():
             rows = x[b, m][vis[m] > 0]
             want = rows.mean(0) if len(rows) else np.zeros(2)
             np.testing.assert_allclose(got[b, m], want, atol=1e-12)
+
+
+def test_one_scale_rigid_fit_finds_the_common_scale_and_each_view_rotation():
+    rng = np.random.default_rng(4)
+    shape = rng.normal(size=(12, 3)) * [1.0, 0.6, 0.3]
+    cams = Rotation.random(40, random_state=5).as_matrix()
+    gt = np.einsum("mij,nj->mni", cams, shape) + rng.normal(size=(40, 1, 3))
+    vis = (rng.uniform(size=(40, 12)) > 0.2).astype(float)
+    vis[:, :4] = 1
+    data = KeypointData(kp=gt[..., :2], vis=vis, kp3d=gt)
+    assert evaluation.evaluate(baselines.fit_mean_shape_one_scale(shape, gt[..., :2], vis),
+                               data)["mpjpe"] < 1e-6
+    # The 2D in other units (pixels): the least-squares scale is theirs.
+    scale, rows, _, _ = baselines.one_scale_cameras(shape, 3.0 * gt[..., :2], vis)
+    np.testing.assert_allclose(scale, 3.0, rtol=1e-8)
+    np.testing.assert_allclose(rows, cams[:, :2], atol=1e-7)
+
+
+def test_one_scale_rotations_match_a_brute_force_optimiser_at_that_scale():
+    shape, kp, vis = _deformed_views(6, seed=7)
+    scale, rows, centred, kp_mean = camera = baselines.one_scale_cameras(shape, kp, vis)
+    assert np.all(scale == scale[0])
+    brute = []
+    for m in range(len(kp)):
+        on = vis[m] > 0
+
+        def error(p, m=m, on=on):  # rotation only: the scale is the split's, the mean fixed
+            xy = scale[0] * centred[m, on] @ Rotation.from_rotvec(p).as_matrix()[:2].T
+            return ((xy + kp_mean[m] - kp[m, on]) ** 2).sum(1).mean()
+
+        brute.append(min(minimize(error, r, method="BFGS", options={"gtol": 1e-12}).fun
+                         for r in Rotation.random(20, random_state=m).as_rotvec()))
+    np.testing.assert_allclose(_residual(camera, kp, vis), brute, rtol=1e-4)
+    # Per-view scales fit the 2D points at least as closely: one scale is a constraint.
+    per_view = _residual(baselines.fit_camera(shape, kp, vis), kp, vis)
+    assert np.all(per_view <= _residual(camera, kp, vis) * (1 + 1e-9))

@@ -156,3 +156,21 @@ def test_mirrored_fraction_counts_the_views_of_the_other_handedness():
     got = evaluation.mirrored_fraction(mixed)
     assert got in (10 / 40, 30 / 40)  # which handedness is the majority's is arbitrary
     assert evaluation.mirrored_fraction(mixed[~flip]) == 0.0
+
+
+def test_mpjpe_global_is_the_split_as_it_is_or_all_mirrored_not_per_view():
+    rng = np.random.default_rng(5)
+    gt = rng.normal(size=(6, 8, 3))
+    flip = np.array([1.0, 1.0, -1.0])
+    mixed = gt.copy()
+    mixed[:2] *= flip  # two views of six mirrored: the protocol's per-view flip hides them
+    res = evaluation.evaluate(mixed, _data(gt), "default")
+    gt_c = evaluation.center_depth(gt, np.ones((6, 8)))
+    pred_c = evaluation.center_depth(mixed, np.ones((6, 8)))
+    as_is = np.mean([_loop_mpjpe(p, g) for p, g in zip(pred_c, gt_c)])
+    all_flipped = np.mean([_loop_mpjpe(p * flip, g) for p, g in zip(pred_c, gt_c)])
+    np.testing.assert_allclose(res["mpjpe_global"], min(as_is, all_flipped))
+    assert res["mpjpe"] < 1e-12 < res["mpjpe_global"]
+    # Every view mirrored: one flip of the whole split undoes it.
+    res = evaluation.evaluate(gt * flip, _data(gt), "default")
+    assert res["mpjpe_global"] < 1e-12 and res["mpjpe_orig"] > 0.1
