@@ -80,6 +80,17 @@ def multiview(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"], v
                                                          scaling), class_mask))
 
 
+def handedness(x_canon: Float[Array, "B N 3"], mean_shape: Float[Array, "B N 3"],
+               class_mask: Float[Array, "B N"], margin: float = 0.0) -> Float[Array, ""]:
+    """Mean over examples of how far each canonical shape falls short of ``margin`` in
+    ``model.handedness_evidence`` against the mean shape (held fixed): zero for a shape that
+    a proper rotation maps onto the mean shape better than a reflection does, by the margin;
+    positive for one nearer the mean shape's mirror image."""
+    evidence = jax.vmap(partial(model.handedness_evidence, floor=1e-8))(
+        x_canon, jax.lax.stop_gradient(mean_shape), class_mask)
+    return jnp.mean(jax.nn.relu(margin - evidence))
+
+
 def supervised_problem(weight: float, projection_type: str) -> str:
     """'' or why ``w_supervised`` cannot be ``weight`` with ``projection_type`` (the camera
     frame's depth is compared up to a shift: orthographic models only)."""
@@ -102,6 +113,8 @@ def deformation(deform_sq: Float[Array, "B N"], class_mask: Float[Array, "B N"]
 
 
 NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
+# The weights that may ramp (``{term}_ramp``, ``w_{term}_final``).
+RAMPED_TERMS = ("canonicalization", "deformation", "handedness")
 
 
 def ramp_problem(ramp, final, term: str = "canonicalization") -> str | None:
@@ -177,12 +190,16 @@ class LossConfig:
     squared_reprojection_loss: bool = False
     w_multiview: float = 0.0
     multiview_views: int = 3
+    w_handedness: float = 0.0
+    w_handedness_final: float | None = None
+    handedness_ramp: tuple[int, ...] = ()
+    handedness_margin: float = 0.0
 
     def __post_init__(self):
         if self.reprojection_normalization not in NORMALIZATIONS:
             raise ValueError(f"unknown reprojection_normalization "
                              f"{self.reprojection_normalization!r}; known: {NORMALIZATIONS}")
-        for term in ("canonicalization", "deformation"):
+        for term in RAMPED_TERMS:
             ramp = getattr(self, f"{term}_ramp")
             problem = ramp_problem(ramp, getattr(self, f"w_{term}_final"), term)
             if problem:
@@ -197,6 +214,10 @@ class LossConfig:
         """The canonicalisation weight at ``step`` (a scalar, traced or not)."""
         return _ramped(self.w_canonicalization, self.w_canonicalization_final,
                        self.canonicalization_ramp, step)
+
+    def handedness_weight(self, step):
+        """The handedness term's weight at ``step`` (a scalar, traced or not)."""
+        return _ramped(self.w_handedness, self.w_handedness_final, self.handedness_ramp, step)
 
     def deformation_weight(self, step):
         """The deformation prior's weight at ``step`` (a scalar, traced or not)."""
@@ -219,6 +240,11 @@ def draw_rotations(key: jax.Array, cfg: model.ModelConfig) -> model.TrainRotatio
         max_angle = None if angle >= jnp.pi else angle
         rots = jax.vmap(lambda k: so3.random_rotation(k, max_angle))(
             jax.random.split(k_canon, cfg.n_rand_samples))
+        if cfg.n_rand_reflections:  # uniform on O(3)'s other half: a rotation times a mirror
+            # (a key of its own, so that the rotations are the same as without reflections)
+            refl = jax.vmap(lambda k: so3.random_rotation(k, max_angle))(jax.random.split(
+                jax.random.fold_in(k_canon, 1), cfg.n_rand_reflections))
+            rots = jnp.concatenate([rots, refl * jnp.array([1.0, 1.0, -1.0])])
     else:
         rots = jnp.zeros((0, 3, 3))
     return model.TrainRotations(augment=r_aug, equivariance=r_eq, canonicalisation=rots)
@@ -250,8 +276,9 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
           kp3d)
         l_repro = reprojection(loss_cfg.penalty(terms["dist_sq"]), batch["vis"],
                                loss_cfg.reprojection_normalization)
-        l_canon = canonicalisation(canonicalisation_per_sample(
-            terms["canon_dist_sq"], batch["class_mask"], loss_cfg.huber_scaling))
+        per_sample = canonicalisation_per_sample(
+            terms["canon_dist_sq"], batch["class_mask"], loss_cfg.huber_scaling)
+        l_canon = canonicalisation(per_sample[:, :model_cfg.n_rand_samples])
         l_deform = deformation(terms["deform_sq"], batch["class_mask"])
         w_canon = loss_cfg.canonicalization_weight(step)
         objective = loss_cfg.w_reprojection * l_repro + w_canon * l_canon
@@ -259,6 +286,15 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
             # Only with the prior on: without it the objective is the paper's, op for op.
             objective = objective + loss_cfg.deformation_weight(step) * l_deform
         extra = {}
+        if model_cfg.canonicalization and model_cfg.n_rand_reflections:
+            # Psi undoes reflections too, with the canonicalisation's weight.
+            extra["loss/reflection"] = canonicalisation(
+                per_sample[:, model_cfg.n_rand_samples:])
+            objective = objective + w_canon * extra["loss/reflection"]
+        if loss_cfg.w_handedness or loss_cfg.w_handedness_final:
+            extra["loss/handedness"] = handedness(terms["x_canon"], terms["mean_shape"],
+                                                  batch["class_mask"], loss_cfg.handedness_margin)
+            objective = objective + loss_cfg.handedness_weight(step) * extra["loss/handedness"]
         if loss_cfg.w_multiview:
             extra["loss/multiview"] = multiview(terms["x_canon"], batch["class_mask"],
                                                 loss_cfg.multiview_views,

@@ -172,6 +172,11 @@ class ModelConfig:
     canonicalization_n_layers: int = 6
     canonicalization_n_fully_connected: int = 1024
     n_rand_samples: int = 4
+    # Not in the release (0): this many more of Psi's samples are reflections (a uniform
+    # rotation times diag(1, 1, -1)), which Psi must undo as well: canonicalisation over
+    # O(3) instead of SO(3), so that the canonical shapes cannot hold both a shape and its
+    # mirror image (``losses.LossConfig``, "reflections").
+    n_rand_reflections: int = 0
     canonicalization_rot_angle: float = 3.141592653589793
     replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
@@ -505,7 +510,8 @@ def forward_train(
     _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
     mean_shape = _shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
-             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1), "x_canon": x_canon}
+             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1), "x_canon": x_canon,
+             "mean_shape": mean_shape}
     if kp3d is not None:
         terms["sup_dist_sq"] = jnp.sum((_class_centred(x_cam, class_mask) - _class_centred(
             kp3d * scale, class_mask)) ** 2, axis=-1)
@@ -744,7 +750,7 @@ def _nearer_mirror(x, reference, class_mask):
                           @ _class_centred(reference, class_mask)) < 0
 
 
-def handedness_evidence(x, reference, class_mask):
+def handedness_evidence(x, reference, class_mask, floor=0.0):
     """How much better a proper rotation than a reflection maps the shape ``x`` (N, 3) onto
     ``reference``: ``(r_mirror - r_proper) / (r_mirror + r_proper)`` of the two Procrustes
     residuals of the centred, unit-size shapes, in [-1, 1] (negative: nearer the mirror
@@ -755,7 +761,7 @@ def handedness_evidence(x, reference, class_mask):
     sigma = jnp.linalg.svd(cov, compute_uv=False)
     third = jnp.sign(jnp.linalg.det(cov)) * sigma[2]
     proper, mirror = (jnp.sqrt(jnp.maximum(2.0 - 2.0 * (sigma[0] + sigma[1] + sign * third),
-                                           0.0)) for sign in (1.0, -1.0))
+                                           floor)) for sign in (1.0, -1.0))
     return (mirror - proper) / jnp.maximum(mirror + proper, 1e-12)
 
 

@@ -59,7 +59,7 @@ from c3dpo_jax.inference import (
     make_eval_fn,
     predict_split,
 )
-from c3dpo_jax.losses import LossConfig, make_loss_fn
+from c3dpo_jax.losses import RAMPED_TERMS, LossConfig, make_loss_fn
 from c3dpo_jax.reconstruct import load, split_path
 from c3dpo_jax.state import (
     OptimConfig,
@@ -222,7 +222,7 @@ class RunSpec:
             out.append(f"config.model.shape_basis_size={d} is not below 3K = {3 * k}: such a "
                        "basis fits any shape, so the views no longer constrain the depth "
                        "(keep D well below 3K, docs/data.md)")
-        for term in ("canonicalization", "deformation"):
+        for term in RAMPED_TERMS:
             ramp = getattr(self.loss, f"{term}_ramp")
             if ramp and ramp[1] > self.total_steps:
                 out.append(f"config.loss.{term}_ramp={ramp} ends after the run's "

@@ -116,6 +116,7 @@ RULES: dict[str, Range | OneOf] = {
     "model.canonicalization_n_fully_connected": Range(lo=4, integer=True),
     "model.canonicalization_n_layers": COUNT,
     "model.n_rand_samples": POSITIVE_INT,
+    "model.n_rand_reflections": COUNT,
     "model.keypoint_norm_type": OneOf(("to_mean", "to_root")),
     "model.root_joint": COUNT,
     "model.keypoint_rescale": NON_NEGATIVE,  # 0: from the training data
@@ -228,7 +229,7 @@ def _cross_field(cfg: dict) -> list[str]:
         cosine_steps = get("optim.cosine_steps")
         problems.append(state.schedule_problem(schedule,
                                                0 if cosine_steps is _MISSING else cosine_steps))
-    for term in ("canonicalization", "deformation"):
+    for term in losses.RAMPED_TERMS:
         ramp, final = get(f"loss.{term}_ramp"), get(f"loss.w_{term}_final")
         if ramp is not _MISSING:
             problems.append(losses.ramp_problem(ramp, None if final is _MISSING else final,

@@ -20,6 +20,7 @@ import dataclasses
 
 import ml_collections
 
+from c3dpo_jax import losses
 from c3dpo_jax.model import ModelConfig
 
 VARIANTS = ("smoke", "base", "equiv", "full", "supervised")
@@ -80,6 +81,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         w_deformation_final=ml_collections.config_dict.placeholder(float), deformation_ramp=(),
         w_supervised=0.0, huber_scaling=0.01, reprojection_normalization="kp_total_count",
         squared_reprojection_loss=False, w_multiview=0.0, multiview_views=3,
+        w_handedness=0.0, w_handedness_final=ml_collections.config_dict.placeholder(float),
+        handedness_ramp=(), handedness_margin=0.0,
     )
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,
@@ -151,9 +154,9 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
     words = parse_args(arg)
     if "supervised" in words:
         c.loss.w_supervised = 1.0
-        for term in ("reprojection", "canonicalization", "deformation"):
+        for term in ("reprojection", *losses.RAMPED_TERMS):
             c.loss[f"w_{term}"] = 0.0
-        for term in ("canonicalization", "deformation"):  # no ramps: constant weights
+        for term in losses.RAMPED_TERMS:  # no ramps: constant weights
             c.loss[f"w_{term}_final"], c.loss[f"{term}_ramp"] = None, ()
         c.model.canonicalization = False
         c.model.test_time_refine_iters = 0
@@ -179,7 +182,7 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         c.data.humans.n_train_poses, c.data.humans.n_test_poses = 16, 4
         c.data.humans.views_per_pose = 16
         c.data.categories.n_train, c.data.categories.n_test = 256, 64
-        for term in ("canonicalization", "deformation"):  # loss-weight ramps: same fractions
+        for term in losses.RAMPED_TERMS:  # loss-weight ramps: same fractions
             ramp = c.loss[f"{term}_ramp"]
             c.loss[f"{term}_ramp"] = tuple(s * c.train.num_steps // recipe_steps for s in ramp)
         c.optim.warmup_steps = c.optim.warmup_steps * c.train.num_steps // recipe_steps

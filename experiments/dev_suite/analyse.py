@@ -574,6 +574,101 @@ def basis(run: str) -> list[float]:
     return out
 
 
+
+MIRROR_COLUMNS = ["views of the truth's handedness", "2D: own", "mirror",
+                  "span residual: mirror", "Psi: own", "mirror", "deformation: own", "mirror",
+                  "the other views: 2D own", "mirror", "span residual: mirror", "Psi: own",
+                  "mirror", "deformation: own", "mirror"]
+
+
+def mirror_cost(run: str) -> list[float]:
+    """What C3DPO's terms charge a view's mirror image, on up to ``OBJECTIVE_VIEWS`` training
+    views (Phi's one pass, what training sees). For each view its lift and the mirror image
+    (the camera-frame depth reflected: the same 2D points) put in the learnt basis' span (the
+    best rotation and coefficients for the mirrored canonical shape, ``_mirror_in_span``): the
+    mean 2D distance of each to the view's points, the mirror's RMS distance from the span,
+    Psi's canonicalisation error (RMS distance of Psi's reconstruction of 8 random rotations
+    of the shape to the shape) and the RMS deformation from the mean shape; all in units of
+    the canonical shapes' RMS radius. First for the views whose lift has the truth's
+    handedness, then for the others (the flip-resolved protocol's choice)."""
+    import jax
+    import jax.numpy as jnp
+
+    from c3dpo_jax import inference, so3
+
+    _, views, _ = _training_split_and_views(run)
+    m = c3dpo_jax.load(run)
+    cfg = dataclasses.replace(m.config, test_time_turns=1, test_time_refine_iters=0,
+                              test_time_one_handedness=False)
+    pred = inference.predict_split(m.variables, views, cfg)
+    net = model_lib.make_network(cfg)
+    params = m.variables["params"]
+    ones = jnp.ones(cfg.n_keypoints)
+    mean = np.asarray(model_lib._shape(net, params, jnp.zeros(cfg.shape_basis_size), ones))
+    basis = np.asarray(jax.vmap(lambda a: model_lib._shape(net, params, a, ones))(
+        jnp.eye(cfg.shape_basis_size))) - mean  # (D, N, 3)
+    x = pred["shape_canonical"].astype(np.float64)
+    size = float(np.sqrt(np.mean(np.sum((x - x.mean(1, keepdims=True)) ** 2, -1))))
+    mirror, rot = _mirror_in_span(x * np.array([1.0, 1.0, -1.0]), mean, basis)
+    # The mirror's camera: F R F rot^T, so that it puts the fit where F R x is (F the depth
+    # reflection): the same 2D points as the lift's.
+    flip = np.diag([1.0, 1.0, -1.0])
+    cam = flip @ pred["rotation"] @ flip @ np.transpose(rot, (0, 2, 1))
+
+    def reproject(shapes, rotations):
+        x_cam = pred["scale"][:, None, None] * np.einsum("mij,mnj->mni", rotations, shapes)
+        proj = x_cam[..., :2] - x_cam[..., :2].mean(1, keepdims=True)
+        kp = pred["kp_norm"] - pred["kp_norm"].mean(1, keepdims=True)
+        return np.linalg.norm(proj - kp, axis=-1).mean(1)
+
+    keys = jax.random.split(jax.random.key(0), 8)
+    rots = jax.vmap(so3.random_rotation)(keys)
+
+    @jax.jit
+    def psi_error(shapes):
+        def one(shape):
+            def per(r):
+                alpha = net.apply(m.variables, shape @ r.T, False, method="psi")
+                return jnp.sqrt(jnp.mean(jnp.sum(
+                    (model_lib._shape(net, params, alpha, ones) - shape) ** 2, -1)))
+            return jnp.mean(jax.vmap(per)(rots))
+        return jax.vmap(one)(shapes)
+
+    def rms(a, b):
+        return np.sqrt(np.mean(np.sum((a - b) ** 2, -1), -1))
+
+    costs = dict(
+        repro_own=reproject(x, pred["rotation"]), repro_mirror=reproject(mirror, cam),
+        span=rms(np.einsum("mij,mnj->mni", rot, x * np.array([1.0, 1.0, -1.0])), mirror),
+        psi_own=np.asarray(psi_error(jnp.asarray(x, jnp.float32))),
+        psi_mirror=np.asarray(psi_error(jnp.asarray(mirror, jnp.float32))),
+        deform_own=rms(x, mean), deform_mirror=rms(mirror, mean))
+    per = _per_view(pred["shape_image_coord"], views)
+    truth_side = per["mpjpe_orig"] <= per["mpjpe_flip"]
+    if truth_side.mean() < 0.5:  # the model's majority is the truth's mirror: name it so
+        truth_side = ~truth_side
+    out = [float(truth_side.mean())]
+    for side in (truth_side, ~truth_side):
+        out += [float(np.mean(v[side])) / size if side.any() else float("nan")
+                for v in costs.values()]
+    return out
+
+
+def _mirror_in_span(shapes: np.ndarray, mean: np.ndarray, basis: np.ndarray, n_iters: int = 10):
+    """``(fits, rotations)``: for each of ``shapes`` (M, N, 3), the shape ``mean + sum_d a_d
+    basis_d`` and the rotation R nearest to R shape (alternating a Procrustes rotation and
+    least-squares coefficients, from the mean shape)."""
+    flat = basis.reshape(len(basis), -1).T  # (3N, D)
+    fit = np.broadcast_to(mean, shapes.shape)
+    centred = shapes - shapes.mean(1, keepdims=True)
+    for _ in range(n_iters):
+        rot = baselines.kabsch(centred, fit - fit.mean(1, keepdims=True))
+        target = np.einsum("mij,mnj->mni", rot, centred) + fit.mean(1, keepdims=True)
+        coef, *_ = np.linalg.lstsq(flat, (target - mean).reshape(len(shapes), -1).T, rcond=None)
+        fit = mean + (flat @ coef).T.reshape(shapes.shape)
+    rot = baselines.kabsch(centred, fit - fit.mean(1, keepdims=True))
+    return fit, rot
+
 # The human bodies of ``model.HANDEDNESS_REFERENCES`` (``handedness``' last columns).
 BODIES = tuple(name for name, n in model_lib.HANDEDNESS_REFERENCES.items() if n is not None)
 
@@ -868,6 +963,7 @@ def _run_tables() -> dict:
         "signs": (["sign agreement"], sign_agreement),
         "bones": (BONES_COLUMNS, bones),
         "relift": (RELIFT_COLUMNS, relift),
+        "mirror": (MIRROR_COLUMNS, mirror_cost),
     }
 
 
