@@ -125,6 +125,10 @@ def main(argv):
               "than most (0: one for all; about 0.5: a coin toss per view, docs/data.md)")
     if _MODE.value == "eval":  # after the table: a workdir it cannot write still shows it
         sys.stdout.flush()
+        why = run_records.left_unwritten(_WORKDIR.value, results["final"]["step"])
+        if why is not None:
+            print(f"scores not written to {_WORKDIR.value}/eval_results.json: {why}")
+            return
         run_records.write_results(_WORKDIR.value, results)
     print(f"results written to {_WORKDIR.value}/eval_results.json")
     sys.stdout.flush()

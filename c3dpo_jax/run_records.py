@@ -11,7 +11,7 @@ import jax
 import numpy as np
 from absl import logging
 
-from c3dpo_jax import checkpoint, tensorboard
+from c3dpo_jax import checkpoint, tensorboard, workdir_lock
 
 
 class MetricsWriter:
@@ -66,6 +66,21 @@ def write_results(workdir: str, results: dict) -> None:
         checkpoint.write_json(path, results, indent=2)
     except OSError as err:
         raise OSError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def left_unwritten(workdir: str, step: int) -> str | None:
+    """Why ``--mode=eval``'s scores of the checkpoint at ``step`` must not replace
+    ``eval_results.json`` (None: they may): a run training in ``workdir`` writes that file
+    itself, and final scores of a later step (its checkpoint now unreadable) are not
+    replaced by an earlier step's."""
+    who = workdir_lock.who_trains(workdir)
+    if who is not None:
+        return f"{who} is training in {workdir} and writes that file"
+    final = read_results(workdir).get("final") or {}
+    if final.get("step", -1) > step:
+        return (f"it holds the final scores of step {final['step']}, whose checkpoint cannot be "
+                f"read now (the warnings above say why), and step {step} is an earlier one")
+    return None
 
 
 def read_results(workdir: str) -> dict:

@@ -50,6 +50,7 @@ from c3dpo_jax import (
     model,
     run_records,
     validation,
+    workdir_lock,
 )
 from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, load_splits
 from c3dpo_jax.data.dataset import fingerprint
@@ -484,11 +485,17 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     and metric logging included; evaluation, checkpoint writing and data loading excluded;
     a resumed run continues the clock of its latest record at or before its checkpoint,
     ``run_records.clock_at``). Returns the final
-    ``eval_results.json`` content (also written to ``workdir``).
+    ``eval_results.json`` content (also written to ``workdir``). The run holds the workdir's
+    lock throughout (``workdir_lock.hold``): a second run there is refused in one line.
     """
     validation.check_config(config)
     _check_workdir_is_a_folder(workdir)
-    hooks = hooks or Hooks()
+    with workdir_lock.hold(workdir):
+        return _train_and_evaluate(config, workdir, hooks or Hooks())
+
+
+def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
+    """``train_and_evaluate``'s run, the workdir locked."""
     train_data, test_data = load_splits(config.data)
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
@@ -518,8 +525,9 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
     _check_data(train_data, spec.model, "train", with_3d=with_3d)
     _check_data(test_data, spec.model, "test")
-    os.makedirs(workdir, exist_ok=True)  # only once every check has passed: a refused run
-    checkpoint.save_config(workdir, record)  # leaves no folder behind
+    # Written once every check has passed: a refused run leaves no folder behind (the lock
+    # removes the workdir it made when nothing was written into it).
+    checkpoint.save_config(workdir, record)
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(
@@ -675,7 +683,8 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
 
     Updates ``final`` and ``baselines`` of ``eval_results.json`` (``save=False``: returns
     them without writing, as the command does until it has printed them, so that a
-    workdir it cannot write still shows its scores); its training history stays,
+    workdir it cannot write still shows its scores; not while a run trains there, nor over
+    final scores of a later step: ``run_records.left_unwritten``); its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
     (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
@@ -703,5 +712,9 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     results = dict(before, final=final,
                    baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
     if save:
-        run_records.write_results(workdir, results)
+        why = run_records.left_unwritten(workdir, step)
+        if why is None:
+            run_records.write_results(workdir, results)
+        else:
+            logging.warning("scores not written to %s/eval_results.json: %s", workdir, why)
     return results
