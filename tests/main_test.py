@@ -86,6 +86,24 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert other.stderr.endswith("holds a network of another shape than the config's "
                                  "(model.shape_basis_size: 10 in the checkpoint's run, 5 now); "
                                  "evaluate it with the config it was trained with\n")
+    # A damaged newest checkpoint: the one before it is scored, and the final scores of
+    # step 20 that eval_results.json holds are not replaced by step 10's without a word.
+    step_dir = os.path.join(workdir, "checkpoints", "20")
+    damaged = next(os.path.join(d, f) for d, _, files in os.walk(step_dir) for f in files
+                   if os.sep + "ocdbt.process_0" + os.sep + "d" in d)
+    with open(damaged, "r+b") as f:
+        f.seek(10)
+        f.write(b"XXXX")
+    older = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                     "--mode=eval")
+    assert older.returncode == 0, older.stderr[-3000:]
+    assert f"checkpoint {step_dir} cannot be read (" in older.stderr
+    assert "), step 10:\n" in older.stdout
+    assert older.stdout.rstrip().splitlines()[-1] == (
+        f"scores not written to {workdir}/eval_results.json: it holds the final scores of "
+        "step 20, whose checkpoint cannot be read now (the warnings above say why), and step "
+        "10 is an earlier one")
+    assert json.loads(_read(workdir, "eval_results.json"))["final"] == reevaluated["final"]
 
 
 def test_a_diverging_run_stops_with_one_line(tmp_path, run_main):
