@@ -127,17 +127,27 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
 predict = predict_split
 
 
+def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
+                       n_keypoints: int) -> None:
+    """The splits' keypoint counts, against each other and then the model's: first of all,
+    since what is worked out from the data (``resolve_from_data``) assumes them equal."""
+    if train_data.n_keypoints != test_data.n_keypoints:
+        raise ValueError(
+            f"the train split has {train_data.n_keypoints} keypoints and the test split "
+            f"{test_data.n_keypoints}: the two files disagree (config.data.train_path and "
+            "test_path must hold the same points)")
+    if train_data.n_keypoints != n_keypoints:
+        raise ValueError(
+            f"train split has {train_data.n_keypoints} keypoints but config.model.n_keypoints "
+            f"is {n_keypoints}; set --config.model.n_keypoints={train_data.n_keypoints}")
+
+
 def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
                 with_3d: bool = False) -> None:
     if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
         what = "none" if data.kp3d is None else "some that is not finite"
         raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
                          f"{split} split has {what} (kp_loc_3d)")
-    if data.n_keypoints != model_cfg.n_keypoints:
-        raise ValueError(
-            f"{split} split has {data.n_keypoints} keypoints but config.model.n_keypoints is "
-            f"{model_cfg.n_keypoints}; set --config.model.n_keypoints={data.n_keypoints}"
-        )
     if model_cfg.projection_type == "perspective" and data.intrinsics is None:
         raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
 
@@ -497,6 +507,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
 def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     """``train_and_evaluate``'s run, the workdir locked."""
     train_data, test_data = load_splits(config.data)
+    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
@@ -692,6 +703,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     """
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
+    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
     saved = checkpoint.load_config(workdir)
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
