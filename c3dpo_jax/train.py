@@ -578,7 +578,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     train_s = run_records.clock_at(before, step) or 0.0
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
-    writer = run_records.MetricsWriter(workdir, pbar)
+    writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
 
     def close() -> None:
         """Ends the bar (before any message) and finishes and seals the saves in flight."""
