@@ -24,6 +24,7 @@ from absl import logging
 from c3dpo_jax import evaluation, skeletons
 from c3dpo_jax.curves import plot_training_curves
 from c3dpo_jax.curves import pyplot as _plt
+from c3dpo_jax.data import json_dataset
 
 SKELETONS = skeletons.SKELETONS
 skeleton = skeletons.skeleton
@@ -238,8 +239,7 @@ def save_figure(fig, path: str) -> str:
 
 def data_file_style(path: str) -> dict:
     """The ``STYLE_DEFAULTS`` keys a JSON data file's wrapper holds (``{}`` when none)."""
-    with open(path) as f:
-        obj = json.load(f)
+    obj = json_dataset.read_json(path)
     if not isinstance(obj, dict):
         return {}
     return {k: obj[k] for k in STYLE_DEFAULTS if obj.get(k) is not None}

@@ -521,11 +521,7 @@ def main(argv=None) -> None:
                    help=_SKELETON_HELP + " (default: the category's 'skeleton', if any)")
     args = parser.parse_args(argv)
     if args.kind == "coco":
-        with open(args.path, encoding="utf-8-sig") as f:
-            try:
-                obj = json.load(f)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{args.path} is not a JSON file: {err}") from None
+        obj = json_dataset.read_json(args.path)
         data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
         save(data, args.out, y_up=False, unit="px",
              skeleton=args.skeleton or coco_skeleton(obj, args.category_id))

@@ -235,6 +235,21 @@ def _write_cache(cpath: str, key: str, data: KeypointData) -> None:
         logging.warning("could not write the cache %s (%s); continuing without it", cpath, err)
 
 
+def read_json(path: str):
+    """The content of the JSON file ``path`` as every reader of the release's format reads
+    it (data, styles for the pictures, inputs to ``predict``, COCO annotations): UTF-8, a
+    byte-order mark (Windows tools write one) skipped; one-line ValueError naming the file
+    when it is not JSON."""
+    with open(path, encoding="utf-8-sig") as f:
+        try:
+            return json.load(f)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path} is not valid JSON: {err}") from None
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path} is not a UTF-8 text (JSON) file: byte {err.start} "
+                             f"is {err.object[err.start:err.start + 1]!r}") from None
+
+
 def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: bool = True
          ) -> KeypointData:
     """Reads one JSON file of the release's format (through its ``.c3dpo_cache.npz``)."""
@@ -246,15 +261,7 @@ def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: 
     cpath = cache_path(path)
     if cache and (data := _read_cache(cpath, key)) is not None:
         return data
-    with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows tools) is skipped
-        try:
-            obj = json.load(f)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path} is not valid JSON: {err}") from None
-        except UnicodeDecodeError as err:
-            raise ValueError(f"{path} is not a UTF-8 text (JSON) file: byte {err.start} "
-                             f"is {err.object[err.start:err.start + 1]!r}") from None
-    data = parse(obj, name=name, min_visible=min_visible, drop_invalid=drop_invalid,
+    data = parse(read_json(path), name=name, min_visible=min_visible, drop_invalid=drop_invalid,
                  source=path)
     if cache:
         _write_cache(cpath, key, data)
