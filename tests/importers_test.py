@@ -1,6 +1,7 @@
 """Importers: 3D sequences (.npz/.mat), BVH, COCO -> JSON; a round trip that trains."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -312,3 +313,21 @@ def test_awkward_bvh_and_coco_files_are_read_or_named():
     with pytest.raises(ValueError, match=r"annotation 3 has 2 keypoints, most others 3 .*; they "
                        r"hold 2 categories: keep one with category_id \(--category_id\)"):
         importers.read_coco(obj)
+
+
+def test_the_files_hold_the_float32_values_as_their_shortest_decimals(tmp_path):
+    """362.79 as 362.79, not as the float64 of its float32 (362.7900085449219), and read
+    back bit for bit."""
+    (tmp_path / "c.json").write_text(json.dumps(
+        {"annotations": [{"keypoints": [362.79, 10.1, 2, 0.3, 1e-5, 2, 7, 8, 0]}]}))
+    importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])
+    entry = json.loads((tmp_path / "o.json").read_text())["data"][0]
+    assert entry["kp_loc"] == [[362.79, 0.3, 0.0], [10.1, 1e-5, 0.0]]
+    x = _sequence(f=20, k=5)
+    train, _ = importers.views_from_sequence(x, views_per_frame=2, n_blocks=2, noise=0.01)
+    json_dataset.save(train, str(tmp_path / "s.json"))
+    back = json_dataset.load(str(tmp_path / "s.json"), cache=False)
+    for field in ("kp", "vis", "kp3d", "scale"):
+        assert getattr(back, field).tobytes() == getattr(train, field).tobytes(), field
+    text = (tmp_path / "s.json").read_text()
+    assert max(len(n) for n in re.findall(r"-?\d[\d.e+-]*", text)) <= 16  # no float64 tails
