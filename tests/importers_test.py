@@ -331,3 +331,13 @@ def test_the_files_hold_the_float32_values_as_their_shortest_decimals(tmp_path):
         assert getattr(back, field).tobytes() == getattr(train, field).tobytes(), field
     text = (tmp_path / "s.json").read_text()
     assert max(len(n) for n in re.findall(r"-?\d[\d.e+-]*", text)) <= 16  # no float64 tails
+
+
+@pytest.mark.parametrize(("argv0", "usage"), [
+    ("/env/bin/c3dpo-import", "usage: c3dpo-import "),
+    (importers.__file__, "usage: python -m c3dpo_jax.data.importers ")])
+def test_the_help_names_the_command_as_it_was_typed(monkeypatch, capsys, argv0, usage):
+    monkeypatch.setattr("sys.argv", [argv0, "--help"])
+    with pytest.raises(SystemExit) as stop:
+        importers.cli_main()
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith(usage)

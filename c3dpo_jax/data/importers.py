@@ -451,9 +451,8 @@ _SKELETON_HELP = ("lines for the pictures, stored in the files: a built-in name 
                   "cub_birds, ...) or index pairs such as 0-1,1-2,2-3")
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m c3dpo_jax.data.importers",
-                                     description=__doc__.split("\n\n")[0])
+def main(argv=None, prog: str = "c3dpo-import") -> None:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("--verbose", action="store_true",
                         help="on an error, its traceback instead of one line")
     sub = parser.add_subparsers(dest="kind", required=True)
@@ -563,8 +562,12 @@ def cli_main() -> None:
     logging.use_absl_handler()
     logging.set_verbosity(logging.INFO)
     cli.setup_logging()
+    # The command's name as it was typed: the console script's, or "python -m ..." for this file.
+    prog = os.path.basename(sys.argv[0])
+    if prog.endswith(".py"):
+        prog = "python -m c3dpo_jax.data.importers"
     try:
-        main([a for a in argv if a != "--verbose"])
+        main([a for a in argv if a != "--verbose"], prog=prog)
     except cli.USER_ERRORS as err:
         if verbose:
             raise
