@@ -128,6 +128,10 @@ def _frame_3d(ax, points, y_up: bool, *, ticks: bool = True, unit: str = ""):
     if ticks:
         ax.set_xlabel("x" + suffix, labelpad=-6)
         ax.set_ylabel("y" + suffix, labelpad=-6)
+        # y is drawn vertical (view_init's vertical_axis="y"), where matplotlib's label angle
+        # wraps between +90 and -90 degrees and could turn the label upside down.
+        ax.yaxis.set_rotate_label(False)
+        ax.yaxis.label.set_rotation(90)
         ax.set_zlabel("z (depth)" + suffix, labelpad=-6)
         ax.tick_params(labelsize=7, pad=-2)
         for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
