@@ -341,3 +341,31 @@ def test_the_help_names_the_command_as_it_was_typed(monkeypatch, capsys, argv0, 
     with pytest.raises(SystemExit) as stop:
         importers.cli_main()
     assert stop.value.code == 0 and capsys.readouterr().out.startswith(usage)
+
+
+def _coco_people(n_images: int, per_image: int = 2, k: int = 5) -> dict:
+    rng = np.random.default_rng(0)
+    images = [{"id": i, "file_name": f"im{i}.jpg"} for i in range(n_images)]
+    annotations = [{"image_id": i, "keypoints": np.column_stack(
+        [rng.uniform(0, 640, size=(k, 2)).round(1), np.full(k, 2)]).ravel().tolist()}
+                   for i in range(n_images) for _ in range(per_image)]
+    return {"images": images, "annotations": annotations}
+
+
+def test_one_coco_file_becomes_train_and_test_files_of_different_images(tmp_path, capsys):
+    (tmp_path / "people.json").write_text(json.dumps(_coco_people(10)))
+    importers.main(["coco", str(tmp_path / "people.json"), "--out_dir", str(tmp_path / "d"),
+                    "--test_fraction", "0.3"])
+    train_d = json_dataset.load(str(tmp_path / "d" / "people_train.json"))
+    test_d = json_dataset.load(str(tmp_path / "d" / "people_test.json"))
+    assert (len(train_d), len(test_d)) == (14, 6)  # 7 and 3 images, two people in each
+    assert not set(train_d.image_path) & set(test_d.image_path)
+    assert len(set(train_d.image_path) | set(test_d.image_path)) == 10
+    wrapper = json.loads((tmp_path / "d" / "people_test.json").read_text())
+    assert wrapper["unit"] == "px" and wrapper["y_up"] is False
+    out = capsys.readouterr().out
+    assert "K=5: --config.model.n_keypoints=5" in out and "--config.data.protocol=none" in out
+    # Without file names every annotation is its own picture; one image cannot be split.
+    assert importers.image_split(np.array([""] * 4), 0.5, seed=0).sum() == 2
+    with pytest.raises(ValueError, match="the annotations are all of one image"):
+        importers.image_split(np.array(["a.jpg"] * 4), 0.5, seed=0)
