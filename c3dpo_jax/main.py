@@ -68,6 +68,17 @@ def _method(config) -> str:
     return "C3DPO"
 
 
+def _unit_2d(config) -> str:
+    """The unit of the data's 2D points (a data file's "unit", e.g. px; the built-in humans'
+    m), '' when unknown."""
+    from c3dpo_jax import visualise
+
+    try:
+        return visualise.run_style({"data": config.data.to_dict()})["unit"]
+    except (OSError, ValueError):  # the scores are shown all the same
+        return ""
+
+
 def _write_figures(config, workdir):
     """A few pictures into workdir/figures; a plotting failure never fails the run."""
     try:
@@ -119,6 +130,10 @@ def main(argv):
         print("mpjpe: per view the better of the 3D prediction and its depth mirror image (the "
               "protocol); mpjpe_orig: the prediction as it is; stress: the error of the "
               "distances between points")
+    unit = _unit_2d(config) if "reprojection" in results["final"] else ""
+    if unit:
+        print(f"reprojection: the mean 2D distance of the visible points to their reprojection, "
+              f"in {unit}")
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape, as the model "
               "lifts it before any handedness given at inference, has the other handedness "

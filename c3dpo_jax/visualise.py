@@ -326,18 +326,18 @@ def write_run_figures(workdir: str, data=None, reconstruction=None, n_samples: i
                          f"the data's {data.n_keypoints} keypoints: not the same views")
     out_dir = out_dir or os.path.join(workdir, "figures")
     os.makedirs(out_dir, exist_ok=True)
-    paths = []
-    if os.path.exists(os.path.join(workdir, "metrics.jsonl")):
-        fig = plot_training_curves(workdir)
-        paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
-    if data is None:
-        return paths
     config_path = os.path.join(workdir, "config.json")  # the run's config; no model is loaded
     config = {}
     if os.path.exists(config_path):
         with open(config_path) as f:
             config = json.load(f)
     style = run_style(config)
+    paths = []
+    if os.path.exists(os.path.join(workdir, "metrics.jsonl")):
+        fig = plot_training_curves(workdir, unit=style["unit"])
+        paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
+    if data is None:
+        return paths
     spec = style.get("skeleton") if skeleton is None else skeleton
     edges = skeletons.skeleton(spec, data.n_keypoints)
     y_up = bool(style.get("y_up", False)) if y_up is None else y_up

@@ -166,6 +166,9 @@ def test_training_curves_show_losses_and_test_error_with_baselines(run, tmp_path
     assert test.get_ylabel() == "test 2D reprojection error"
     assert test.lines[0].get_ydata().tolist() == [0.2, 0.1]
     visualise._plt().close(fig)
+    fig = curves.plot_training_curves(str(tmp_path / "metrics.jsonl"), unit="px")  # the data's
+    assert fig.axes[1].get_ylabel() == "test 2D reprojection error [px]"
+    visualise._plt().close(fig)
 
 
 def test_run_style_from_the_data_file_or_the_built_in_dataset(tmp_path):
