@@ -53,8 +53,8 @@ def _who(path: str) -> str:
 
 
 def who_trains(workdir: str) -> str | None:
-    """"another process (pid N)" while a run trains in ``workdir``, else None. Takes the
-    lock shared for a moment only (``hold`` tries again a few times before it refuses)."""
+    """Who trains in ``workdir`` ("another process (pid N)"), None when no run does. Takes
+    the lock shared for a moment only (``hold`` tries again a few times before it refuses)."""
     path = os.path.join(workdir, LOCK_FILE)
     if fcntl is None or not os.path.exists(path):
         return None
