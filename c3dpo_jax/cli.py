@@ -189,14 +189,68 @@ def fail(err: BaseException) -> None:
     sys.exit(2)
 
 
+def _config_flag(arg: str) -> str:
+    """``--config.a.b`` of an argument ``--config.a.b=value`` ('' for other arguments)."""
+    name = arg.partition("=")[0]
+    return name if name.startswith(("--config.", "-config.")) else ""
+
+
+def _overrides_without_config(argv: list[str]) -> None:
+    """``--config.a.b=v`` with no ``--config=FILE`` to override (absl would call the flag
+    unknown): a ValueError that says so."""
+    overrides = [a for a in argv[1:] if _config_flag(a)]
+    if (overrides and "config" in flags.FLAGS
+            and not any(a.partition("=")[0] in ("--config", "-config") for a in argv[1:])):
+        raise ValueError(f"{_config_flag(overrides[0])} sets a field of the config, and no "
+                         "--config=FILE names one: add it, e.g. --config=configs/own_json.py")
+
+
+def _override_problem(argv: list[str]) -> str | None:
+    """The first ``--config.a.b=v`` of ``argv`` (``--config`` resolved) whose path names no
+    field of the config, said with the flag and the sections there are (config_flags
+    raises a bare KeyError for a missing section); None when they all name one."""
+    import difflib
+
+    from ml_collections import ConfigDict
+
+    spec = next((a.partition("=")[2] for a in argv if a.startswith(("--config=", "-config="))),
+                None)
+    if not spec:
+        return None
+    try:
+        config = get_config(spec)
+    except Exception:  # noqa: BLE001 (a config that fails to load: its own error is shown)
+        return None
+    for flag in filter(None, map(_config_flag, argv)):
+        path = flag.split(".")[1:]
+        node, where = config, "the config"
+        for depth, key in enumerate(path):
+            if not isinstance(node, ConfigDict):
+                return f"{flag}: {where} is a value, not a section with fields"
+            if key not in node:
+                close = difflib.get_close_matches(key, list(node), n=1)
+                sections = sorted(k for k in node if isinstance(node[k], ConfigDict))
+                what = "section" if depth < len(path) - 1 else "field"
+                return (f"{flag}: {where} has no {what} {key!r}"
+                        + (f" (did you mean {close[0]!r}?)" if close else "")
+                        + (f"; its sections: {', '.join(sections)}" if sections else ""))
+            node, where = node[key], "config." + ".".join(path[:depth + 1])
+    return None
+
+
 def _parse_flags(argv: list[str]) -> list[str]:
     """absl's flag parsing, with ``--config`` resolved and one-line errors (exit status 2)."""
+    resolved = argv
     try:
-        return flags.FLAGS(_resolve_config_argv(argv))
+        _overrides_without_config(argv)
+        resolved = _resolve_config_argv(argv)
+        return flags.FLAGS(resolved)
     except (flags.Error, AttributeError, *USER_ERRORS) as err:
         if any(a.startswith("--verbose") for a in argv):
             raise
-        fail(err)
+        problem = (_override_problem(resolved) if isinstance(err, (KeyError, AttributeError))
+                   else None)
+        fail(ValueError(problem) if problem else err)
 
 
 def is_verbose(verbose: flags.FlagHolder | None) -> bool:

@@ -44,7 +44,7 @@ def _test_points(results: dict, key: str) -> tuple[list[int], list[float]]:
 _TEST_LABELS = {"mpjpe": "test MPJPE", "reprojection": "test 2D reprojection error"}
 
 
-def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
+def _plot_test_error(ax, results: dict, key: str = "mpjpe", unit: str = "") -> None:
     steps, values = _test_points(results, key)
     ax.plot(steps, values, marker="o", color="tab:blue", label=f"C3DPO ({values[-1]:.3g})")
     styles = iter(("--", ":", "-.", (0, (5, 1, 1, 1))))
@@ -53,7 +53,7 @@ def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
             ax.axhline(scores[key], color="0.35", ls=next(styles, "--"), lw=1.2,
                        label=f"{name} ({scores[key]:.3g})")
     ax.set_xlabel("step")
-    ax.set_ylabel(_TEST_LABELS[key])
+    ax.set_ylabel(_TEST_LABELS[key] + (f" [{unit}]" if unit and key == "reprojection" else ""))
     tops = [*values, *(s[key] for s in results.get("baselines", {}).values() if key in s)]
     ax.set_ylim(0, 1.08 * max(tops))
     ax.grid(alpha=0.3)
@@ -61,10 +61,11 @@ def _plot_test_error(ax, results: dict, key: str = "mpjpe") -> None:
     ax.set_title("test error (lower is better)", fontsize=10)
 
 
-def plot_training_curves(path: str):
+def plot_training_curves(path: str, unit: str = ""):
     """The losses (log scale) and, when the run was evaluated, the test MPJPE (2D-only
     data: the test 2D reprojection error) with the baselines' as horizontal lines; ``path``
-    is a workdir or its ``metrics.jsonl``."""
+    is a workdir or its ``metrics.jsonl``; ``unit``: the data's 2D unit (e.g. "px"), which
+    the 2D reprojection error is in."""
     workdir = path if os.path.isdir(path) else os.path.dirname(path)
     metrics = os.path.join(path, "metrics.jsonl") if os.path.isdir(path) else path
     records = read_records(metrics)
@@ -91,6 +92,6 @@ def plot_training_curves(path: str):
     ax.legend(fontsize=8)
     ax.set_title("training losses (means over each logging interval)", fontsize=10)
     if evaluated:
-        _plot_test_error(axes[0, 1], results, key)
+        _plot_test_error(axes[0, 1], results, key, unit)
     fig.tight_layout()
     return fig

@@ -68,6 +68,17 @@ def _method(config) -> str:
     return "C3DPO"
 
 
+def _unit_2d(config) -> str:
+    """The unit of the data's 2D points (a data file's "unit", e.g. px; the built-in humans'
+    m), '' when unknown."""
+    from c3dpo_jax import visualise
+
+    try:
+        return visualise.run_style({"data": config.data.to_dict()})["unit"]
+    except (OSError, ValueError):  # the scores are shown all the same
+        return ""
+
+
 def _write_figures(config, workdir):
     """A few pictures into workdir/figures; a plotting failure never fails the run."""
     try:
@@ -121,12 +132,20 @@ def main(argv):
               "better of the prediction and its mirror image (the paper's protocol); "
               "mpjpe_orig: the prediction as it is; stress: the error of the distances between "
               "points")
+    unit = _unit_2d(config) if "reprojection" in results["final"] else ""
+    if unit:
+        print(f"reprojection: the mean 2D distance of the visible points to their reprojection, "
+              f"in {unit}")
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape, as the model "
               "lifts it before any handedness given at inference, has the other handedness "
               "than most (0: one for all; about 0.5: a coin toss per view, docs/data.md)")
     if _MODE.value == "eval":  # after the table: a workdir it cannot write still shows it
         sys.stdout.flush()
+        why = run_records.left_unwritten(_WORKDIR.value, results["final"]["step"])
+        if why is not None:
+            print(f"scores not written to {_WORKDIR.value}/eval_results.json: {why}")
+            return
         run_records.write_results(_WORKDIR.value, results)
     print(f"results written to {_WORKDIR.value}/eval_results.json")
     sys.stdout.flush()

@@ -80,12 +80,9 @@ def read_coco(obj: dict) -> dict[str, np.ndarray]:
 
 def read_input(path: str) -> dict[str, np.ndarray]:
     """Either input format -> ``kp``, ``vis``, ``index`` (+ ``class_mask``, ``K``, ``kp3d``)."""
-    try:
-        with open(path, encoding="utf-8-sig") as f:
-            obj = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:  # say which file
-        raise ValueError(f"{path} is not a JSON file: {err}") from err
     from c3dpo_jax.data import importers, json_dataset
+
+    obj = json_dataset.read_json(path)
 
     if isinstance(obj, dict) and "annotations" in obj:
         out = read_coco(obj)

@@ -187,18 +187,32 @@ def _input_scale_ratio(cfg: ModelConfig, pts: np.ndarray, shown: np.ndarray,
     """The inputs' median RMS radius about their visible mean in the model's normalised
     units (``keypoint_rescale`` times the input's; calibrated points for perspective
     models). The training views' is 1: the input scale is set so (``keypoint_rescale=0``)
-    or was fixed by the paper's rule of about that. nan when no sample has two visible
-    points."""
+    or was fixed by the paper's rule of about that. Views whose visible points coincide
+    have no scale (``_warn_if_other_units`` names them); nan when no view has one."""
     count = shown[..., 0].sum(1)
+    scaled = (count > 1) & ~_coincide(pts, shown)
     sq = (np.where(shown, pts - mean, 0.0) ** 2).sum((1, 2))
     with np.errstate(invalid="ignore", over="ignore"):
-        radius = np.sqrt(sq[count > 1] / count[count > 1]) * cfg.keypoint_rescale
+        radius = np.sqrt(sq[scaled] / count[scaled]) * cfg.keypoint_rescale
     return float(np.median(radius)) if radius.size else float("nan")
 
 
+def _coincide(pts: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """(B,) whether a view's two or more visible points are all at one place."""
+    hi = np.where(shown, pts, -np.inf).max(1)
+    lo = np.where(shown, pts, np.inf).min(1)
+    return (shown[..., 0].sum(1) > 1) & np.all(hi == lo, -1)
+
+
 def _warn_if_other_units(cfg: ModelConfig, pts, shown, mean) -> None:
-    """One warning line when the inputs' scale is beyond ``SCALE_WARNING_RATIO`` times the
-    training data's."""
+    """One warning line for views whose two or more visible points all coincide (no shape
+    to lift), and one when the other views' scale is beyond ``SCALE_WARNING_RATIO`` times
+    the training data's."""
+    coincide = np.flatnonzero(_coincide(pts, shown))
+    if coincide.size:
+        logging.warning("kp of %s: the visible points coincide (all at one place), so the "
+                        "view shows no shape; its 3D shape is the model's guess",
+                        _samples(coincide))
     ratio = _input_scale_ratio(cfg, pts, shown, mean)
     if ratio > SCALE_WARNING_RATIO or ratio < 1 / SCALE_WARNING_RATIO:
         logging.warning(

@@ -11,17 +11,21 @@ import jax
 import numpy as np
 from absl import logging
 
-from c3dpo_jax import checkpoint, tensorboard
+from c3dpo_jax import checkpoint, tensorboard, workdir_lock
 
 
 class MetricsWriter:
     """Fetches chunk metrics (one chunk late, so the host never waits on the device),
-    checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events."""
+    checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events.
+    ``resumed_from``: the step of the checkpoint the run resumed from (0: none), which a
+    loss that is not finite in the first chunk after it names as the suspect."""
 
-    def __init__(self, workdir: str, pbar):
+    def __init__(self, workdir: str, pbar, resumed_from: int = 0):
         self.path = os.path.join(workdir, "metrics.jsonl")
         self.events = tensorboard.EventWriter(workdir)
         self.pbar, self.pending, self.last_time = pbar, None, time.perf_counter()
+        self.checkpoints, self.resumed_from = (
+            os.path.join(workdir, checkpoint.CHECKPOINT_DIR), resumed_from)
 
     def push(self, first_step: int, metrics) -> None:
         self.flush()
@@ -39,6 +43,12 @@ class MetricsWriter:
             at = first_step + int(bad[0])
             values = {k: float(v[bad[0]]) for k, v in metrics.items()}
             shown = ", ".join(f"{k} {v:.4g}" for k, v in values.items())
+            if self.resumed_from and first_step == self.resumed_from:
+                raise FloatingPointError(
+                    f"loss is not finite at step {at} ({shown}), right after resuming from the "
+                    f"checkpoint {self.checkpoints}/{first_step}, the first suspect (damaged "
+                    "files can read back as finite numbers); training stopped: move that "
+                    "folder aside to resume from the checkpoint before it")
             raise FloatingPointError(
                 f"loss is not finite at step {at} ({shown}); training stopped, its last "
                 "checkpoint kept: a lower --config.optim.lr, or a look at the data, usually helps")
@@ -66,6 +76,21 @@ def write_results(workdir: str, results: dict) -> None:
         checkpoint.write_json(path, results, indent=2)
     except OSError as err:
         raise OSError(f"cannot write {path}: {err.strerror or err}") from err
+
+
+def left_unwritten(workdir: str, step: int) -> str | None:
+    """Why ``--mode=eval``'s scores of the checkpoint at ``step`` must not replace
+    ``eval_results.json`` (None: they may): a run training in ``workdir`` writes that file
+    itself, and final scores of a later step (its checkpoint now unreadable) are not
+    replaced by an earlier step's."""
+    who = workdir_lock.who_trains(workdir)
+    if who is not None:
+        return f"{who} is training in {workdir} and writes that file"
+    final = read_results(workdir).get("final") or {}
+    if final.get("step", -1) > step:
+        return (f"it holds the final scores of step {final['step']}, whose checkpoint cannot be "
+                f"read now (the warnings above say why), and step {step} is an earlier one")
+    return None
 
 
 def read_results(workdir: str) -> dict:

@@ -50,6 +50,7 @@ from c3dpo_jax import (
     model,
     run_records,
     validation,
+    workdir_lock,
 )
 from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, load_splits
 from c3dpo_jax.data.dataset import fingerprint
@@ -126,17 +127,27 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
 predict = predict_split
 
 
+def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
+                       n_keypoints: int) -> None:
+    """The splits' keypoint counts, against each other and then the model's: first of all,
+    since what is worked out from the data (``resolve_from_data``) assumes them equal."""
+    if train_data.n_keypoints != test_data.n_keypoints:
+        raise ValueError(
+            f"the train split has {train_data.n_keypoints} keypoints and the test split "
+            f"{test_data.n_keypoints}: the two files disagree (config.data.train_path and "
+            "test_path must hold the same points)")
+    if train_data.n_keypoints != n_keypoints:
+        raise ValueError(
+            f"train split has {train_data.n_keypoints} keypoints but config.model.n_keypoints "
+            f"is {n_keypoints}; set --config.model.n_keypoints={train_data.n_keypoints}")
+
+
 def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
                 with_3d: bool = False) -> None:
     if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
         what = "none" if data.kp3d is None else "some that is not finite"
         raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
                          f"{split} split has {what} (kp_loc_3d)")
-    if data.n_keypoints != model_cfg.n_keypoints:
-        raise ValueError(
-            f"{split} split has {data.n_keypoints} keypoints but config.model.n_keypoints is "
-            f"{model_cfg.n_keypoints}; set --config.model.n_keypoints={data.n_keypoints}"
-        )
     if model_cfg.projection_type == "perspective" and data.intrinsics is None:
         raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
 
@@ -484,12 +495,19 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     and metric logging included; evaluation, checkpoint writing and data loading excluded;
     a resumed run continues the clock of its latest record at or before its checkpoint,
     ``run_records.clock_at``). Returns the final
-    ``eval_results.json`` content (also written to ``workdir``).
+    ``eval_results.json`` content (also written to ``workdir``). The run holds the workdir's
+    lock throughout (``workdir_lock.hold``): a second run there is refused in one line.
     """
     validation.check_config(config)
     _check_workdir_is_a_folder(workdir)
-    hooks = hooks or Hooks()
+    with workdir_lock.hold(workdir):
+        return _train_and_evaluate(config, workdir, hooks or Hooks())
+
+
+def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
+    """``train_and_evaluate``'s run, the workdir locked."""
     train_data, test_data = load_splits(config.data)
+    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
@@ -518,8 +536,9 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
     _check_data(train_data, spec.model, "train", with_3d=with_3d)
     _check_data(test_data, spec.model, "test")
-    os.makedirs(workdir, exist_ok=True)  # only once every check has passed: a refused run
-    checkpoint.save_config(workdir, record)  # leaves no folder behind
+    # Written once every check has passed: a refused run leaves no folder behind (the lock
+    # removes the workdir it made when nothing was written into it).
+    checkpoint.save_config(workdir, record)
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(
@@ -559,7 +578,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     train_s = run_records.clock_at(before, step) or 0.0
     pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                 disable=not config.train.progress_bar, desc="train")
-    writer = run_records.MetricsWriter(workdir, pbar)
+    writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
 
     def close() -> None:
         """Ends the bar (before any message) and finishes and seals the saves in flight."""
@@ -675,7 +694,8 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
 
     Updates ``final`` and ``baselines`` of ``eval_results.json`` (``save=False``: returns
     them without writing, as the command does until it has printed them, so that a
-    workdir it cannot write still shows its scores); its training history stays,
+    workdir it cannot write still shows its scores; not while a run trains there, nor over
+    final scores of a later step: ``run_records.left_unwritten``); its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
     (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
@@ -683,6 +703,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     """
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
+    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
     saved = checkpoint.load_config(workdir)
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
@@ -703,5 +724,9 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     results = dict(before, final=final,
                    baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
     if save:
-        run_records.write_results(workdir, results)
+        why = run_records.left_unwritten(workdir, step)
+        if why is None:
+            run_records.write_results(workdir, results)
+        else:
+            logging.warning("scores not written to %s/eval_results.json: %s", workdir, why)
     return results

@@ -24,6 +24,7 @@ from absl import logging
 from c3dpo_jax import evaluation, skeletons
 from c3dpo_jax.curves import plot_training_curves
 from c3dpo_jax.curves import pyplot as _plt
+from c3dpo_jax.data import json_dataset
 
 SKELETONS = skeletons.SKELETONS
 skeleton = skeletons.skeleton
@@ -127,6 +128,10 @@ def _frame_3d(ax, points, y_up: bool, *, ticks: bool = True, unit: str = ""):
     if ticks:
         ax.set_xlabel("x" + suffix, labelpad=-6)
         ax.set_ylabel("y" + suffix, labelpad=-6)
+        # y is drawn vertical (view_init's vertical_axis="y"), where matplotlib's label angle
+        # wraps between +90 and -90 degrees and could turn the label upside down.
+        ax.yaxis.set_rotate_label(False)
+        ax.yaxis.label.set_rotation(90)
         ax.set_zlabel("z (depth)" + suffix, labelpad=-6)
         ax.tick_params(labelsize=7, pad=-2)
         for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
@@ -238,8 +243,7 @@ def save_figure(fig, path: str) -> str:
 
 def data_file_style(path: str) -> dict:
     """The ``STYLE_DEFAULTS`` keys a JSON data file's wrapper holds (``{}`` when none)."""
-    with open(path) as f:
-        obj = json.load(f)
+    obj = json_dataset.read_json(path)
     if not isinstance(obj, dict):
         return {}
     return {k: obj[k] for k in STYLE_DEFAULTS if obj.get(k) is not None}
@@ -322,18 +326,18 @@ def write_run_figures(workdir: str, data=None, reconstruction=None, n_samples: i
                          f"the data's {data.n_keypoints} keypoints: not the same views")
     out_dir = out_dir or os.path.join(workdir, "figures")
     os.makedirs(out_dir, exist_ok=True)
-    paths = []
-    if os.path.exists(os.path.join(workdir, "metrics.jsonl")):
-        fig = plot_training_curves(workdir)
-        paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
-    if data is None:
-        return paths
     config_path = os.path.join(workdir, "config.json")  # the run's config; no model is loaded
     config = {}
     if os.path.exists(config_path):
         with open(config_path) as f:
             config = json.load(f)
     style = run_style(config)
+    paths = []
+    if os.path.exists(os.path.join(workdir, "metrics.jsonl")):
+        fig = plot_training_curves(workdir, unit=style["unit"])
+        paths.append(save_figure(fig, os.path.join(out_dir, "training_curves.png")))
+    if data is None:
+        return paths
     spec = style.get("skeleton") if skeleton is None else skeleton
     edges = skeletons.skeleton(spec, data.n_keypoints)
     y_up = bool(style.get("y_up", False)) if y_up is None else y_up

@@ -218,6 +218,46 @@ def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_
                             "(e.g. --config.model.canonicalization=False)\n")
 
 
+def _main_refuses(tmp_path, env, *args) -> str:
+    """The command's stderr, having refused ``args`` with exit status 2 and made nothing."""
+    out = subprocess.run([sys.executable, "-m", "c3dpo_jax.main", f"--workdir={tmp_path / 'run'}",
+                          *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and not (tmp_path / "run").exists(), out.stderr[-3000:]
+    return out.stderr
+
+
+def test_a_config_override_naming_no_section_names_the_flag_and_the_sections(
+        tmp_path, smoke_subprocess_env):
+    # config_flags alone: 'missing key "'foo'"'.
+    assert _main_refuses(tmp_path, smoke_subprocess_env(), "--config=configs/synthetic.py:smoke",
+                         "--config.foo.bar=1") == (
+        "error: --config.foo.bar: the config has no section 'foo'; its sections: data, loss, "
+        "model, optim, train\n")
+
+
+def test_a_config_override_without_a_config_asks_for_one(tmp_path, smoke_subprocess_env):
+    # absl alone: "Unknown command line flag 'config.model.n_keypoints'".
+    assert _main_refuses(tmp_path, smoke_subprocess_env(), "--config.model.n_keypoints=18") == (
+        "error: --config.model.n_keypoints sets a field of the config, and no --config=FILE "
+        "names one: add it, e.g. --config=configs/own_json.py\n")
+
+
+def test_what_a_config_override_names_that_is_not_there():
+    def problem(*overrides):
+        return cli._override_problem(["prog", "--config=configs/synthetic.py:smoke", *overrides])
+
+    assert problem("--config.model.n_keypoints=3", "--config.data.synthetic.seed=1") is None
+    assert problem("--config.modl.n_keypoints=3") == (
+        "--config.modl.n_keypoints: the config has no section 'modl' (did you mean 'model'?); "
+        "its sections: data, loss, model, optim, train")
+    assert problem("--config.data.synthetic.n_keypoint=3") == (
+        "--config.data.synthetic.n_keypoint: config.data.synthetic has no field 'n_keypoint' "
+        "(did you mean 'n_keypoints'?)")
+    assert problem("--config.model.n_keypoints.x=3") == (
+        "--config.model.n_keypoints.x: config.model.n_keypoints is a value, not a section "
+        "with fields")
+
+
 def test_the_results_table_names_what_was_trained():
     from c3dpo_jax import main
 

@@ -1,6 +1,7 @@
 """config.data -> splits for every source, with the default config's sections."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -233,3 +234,45 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
         "mean_shape", True)
     c.model.test_time_handedness_reference = "mean_shape"
     assert train.resolve_handedness(c, people) is c
+
+
+
+def _k_files(tmp_path, mode):
+    """Files of 17 and 18 points; the run (``mode``) and own_json's smoke config (K = 17, a
+    human body's handedness looked for: "auto")."""
+    from c3dpo_jax import train
+    from c3dpo_jax.data import json_dataset, synthetic
+
+    for k in (17, 18):
+        data = synthetic.make_split(32, n_keypoints=k, n_modes=2, deformation=0.3,
+                                    occlusion=0.0, noise=0.0, perspective=False, shape_seed=0,
+                                    seed=3)
+        json_dataset.save(data, str(tmp_path / f"k{k}.json"))
+    run = train.train_and_evaluate if mode == "train" else train.evaluate_checkpoint
+    return run, own_json.get_config("smoke")
+
+
+@pytest.mark.parametrize("mode", ["train", "eval"])
+def test_the_keypoint_count_is_checked_before_the_settings_worked_out_from_the_data(
+        tmp_path, mode):
+    """The bodies' handedness is looked for among those of the model's K, which would fail
+    on points of another K."""
+    run, c = _k_files(tmp_path, mode)
+    c.data.train_path = c.data.test_path = str(tmp_path / "k18.json")
+    with pytest.raises(ValueError, match="^" + re.escape(
+            "train split has 18 keypoints but config.model.n_keypoints is 17; set "
+            "--config.model.n_keypoints=18")):
+        run(c, str(tmp_path / "run"))
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("mode", ["train", "eval"])
+def test_train_and_test_files_of_other_keypoint_counts_are_named_both(tmp_path, mode):
+    """Not the test file's K as the fix: it would then fail on the train file."""
+    run, c = _k_files(tmp_path, mode)
+    c.model.n_keypoints = 18
+    c.data.train_path, c.data.test_path = str(tmp_path / "k18.json"), str(tmp_path / "k17.json")
+    with pytest.raises(ValueError, match="^" + re.escape(
+            "the train split has 18 keypoints and the test split 17: the two files disagree "
+            "(config.data.train_path and test_path must hold the same points)")):
+        run(c, str(tmp_path / "run"))

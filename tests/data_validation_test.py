@@ -129,6 +129,26 @@ def test_unreadable_files_name_themselves(tmp_path):
         json_dataset.load(str(truncated))
 
 
+def test_every_reader_of_the_release_json_reads_a_file_with_a_byte_order_mark(tmp_path):
+    """Windows tools write UTF-8 with a BOM: training read such a file, and the pictures
+    after it (which read the file's drawing style) failed on it."""
+    from c3dpo_jax import predict, visualise
+    from c3dpo_jax.data import importers
+
+    path = tmp_path / "bom.json"
+    wrapper = {"dataset": "mine", "y_up": True, "skeleton": [[0, 1]], "data": _entries()}
+    path.write_text(json.dumps(wrapper), encoding="utf-8-sig")
+    assert path.read_bytes().startswith(b"\xef\xbb\xbf")
+    assert len(json_dataset.load(str(path), cache=False)) == 8
+    assert visualise.data_file_style(str(path)) == {"skeleton": [[0, 1]], "y_up": True}
+    assert predict.read_input(str(path))["kp"].shape == (8, 6, 2)
+    coco = tmp_path / "coco.json"
+    coco.write_text(json.dumps({"annotations": [{"keypoints": [1, 2, 2, 3, 4, 2]}]}),
+                    encoding="utf-8-sig")
+    importers.main(["coco", str(coco), "--out", str(tmp_path / "o.json")])
+    assert json_dataset.load(str(tmp_path / "o.json")).n_keypoints == 2
+
+
 def test_training_data_without_spread_is_refused(tmp_path):
     zeros = _entries()
     for e in zeros:

@@ -1,6 +1,7 @@
 """Importers: 3D sequences (.npz/.mat), BVH, COCO -> JSON; a round trip that trains."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -312,3 +313,59 @@ def test_awkward_bvh_and_coco_files_are_read_or_named():
     with pytest.raises(ValueError, match=r"annotation 3 has 2 keypoints, most others 3 .*; they "
                        r"hold 2 categories: keep one with category_id \(--category_id\)"):
         importers.read_coco(obj)
+
+
+def test_the_files_hold_the_float32_values_as_their_shortest_decimals(tmp_path):
+    """362.79 as 362.79, not as the float64 of its float32 (362.7900085449219), and read
+    back bit for bit."""
+    (tmp_path / "c.json").write_text(json.dumps(
+        {"annotations": [{"keypoints": [362.79, 10.1, 2, 0.3, 1e-5, 2, 7, 8, 0]}]}))
+    importers.main(["coco", str(tmp_path / "c.json"), "--out", str(tmp_path / "o.json")])
+    entry = json.loads((tmp_path / "o.json").read_text())["data"][0]
+    assert entry["kp_loc"] == [[362.79, 0.3, 0.0], [10.1, 1e-5, 0.0]]
+    x = _sequence(f=20, k=5)
+    train, _ = importers.views_from_sequence(x, views_per_frame=2, n_blocks=2, noise=0.01)
+    json_dataset.save(train, str(tmp_path / "s.json"))
+    back = json_dataset.load(str(tmp_path / "s.json"), cache=False)
+    for field in ("kp", "vis", "kp3d", "scale"):
+        assert getattr(back, field).tobytes() == getattr(train, field).tobytes(), field
+    text = (tmp_path / "s.json").read_text()
+    assert max(len(n) for n in re.findall(r"-?\d[\d.e+-]*", text)) <= 16  # no float64 tails
+
+
+@pytest.mark.parametrize(("argv0", "usage"), [
+    ("/env/bin/c3dpo-import", "usage: c3dpo-import "),
+    (importers.__file__, "usage: python -m c3dpo_jax.data.importers ")])
+def test_the_help_names_the_command_as_it_was_typed(monkeypatch, capsys, argv0, usage):
+    monkeypatch.setattr("sys.argv", [argv0, "--help"])
+    with pytest.raises(SystemExit) as stop:
+        importers.cli_main()
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith(usage)
+
+
+def _coco_people(n_images: int, per_image: int = 2, k: int = 5) -> dict:
+    rng = np.random.default_rng(0)
+    images = [{"id": i, "file_name": f"im{i}.jpg"} for i in range(n_images)]
+    annotations = [{"image_id": i, "keypoints": np.column_stack(
+        [rng.uniform(0, 640, size=(k, 2)).round(1), np.full(k, 2)]).ravel().tolist()}
+                   for i in range(n_images) for _ in range(per_image)]
+    return {"images": images, "annotations": annotations}
+
+
+def test_one_coco_file_becomes_train_and_test_files_of_different_images(tmp_path, capsys):
+    (tmp_path / "people.json").write_text(json.dumps(_coco_people(10)))
+    importers.main(["coco", str(tmp_path / "people.json"), "--out_dir", str(tmp_path / "d"),
+                    "--test_fraction", "0.3"])
+    train_d = json_dataset.load(str(tmp_path / "d" / "people_train.json"))
+    test_d = json_dataset.load(str(tmp_path / "d" / "people_test.json"))
+    assert (len(train_d), len(test_d)) == (14, 6)  # 7 and 3 images, two people in each
+    assert not set(train_d.image_path) & set(test_d.image_path)
+    assert len(set(train_d.image_path) | set(test_d.image_path)) == 10
+    wrapper = json.loads((tmp_path / "d" / "people_test.json").read_text())
+    assert wrapper["unit"] == "px" and wrapper["y_up"] is False
+    out = capsys.readouterr().out
+    assert "K=5: --config.model.n_keypoints=5" in out and "--config.data.protocol=none" in out
+    # Without file names every annotation is its own picture; one image cannot be split.
+    assert importers.image_split(np.array([""] * 4), 0.5, seed=0).sum() == 2
+    with pytest.raises(ValueError, match="the annotations are all of one image"):
+        importers.image_split(np.array(["a.jpg"] * 4), 0.5, seed=0)

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -86,6 +87,24 @@ def test_smoke_run_trains_evaluates_resumes_and_reevaluates(tmp_path, run_main):
     assert other.stderr.endswith("holds a network of another shape than the config's "
                                  "(model.shape_basis_size: 10 in the checkpoint's run, 5 now); "
                                  "evaluate it with the config it was trained with\n")
+    # A damaged newest checkpoint: the one before it is scored, and the final scores of
+    # step 20 that eval_results.json holds are not replaced by step 10's without a word.
+    step_dir = os.path.join(workdir, "checkpoints", "20")
+    damaged = next(os.path.join(d, f) for d, _, files in os.walk(step_dir) for f in files
+                   if os.sep + "ocdbt.process_0" + os.sep + "d" in d)
+    with open(damaged, "r+b") as f:
+        f.seek(10)
+        f.write(b"XXXX")
+    older = run_main("--config=configs/synthetic.py:smoke", f"--workdir={workdir}",
+                     "--mode=eval")
+    assert older.returncode == 0, older.stderr[-3000:]
+    assert f"checkpoint {step_dir} cannot be read (" in older.stderr
+    assert "), step 10:\n" in older.stdout
+    assert older.stdout.rstrip().splitlines()[-1] == (
+        f"scores not written to {workdir}/eval_results.json: it holds the final scores of "
+        "step 20, whose checkpoint cannot be read now (the warnings above say why), and step "
+        "10 is an earlier one")
+    assert json.loads(_read(workdir, "eval_results.json"))["final"] == reevaluated["final"]
 
 
 def test_a_diverging_run_stops_with_one_line(tmp_path, run_main):
@@ -131,3 +150,26 @@ def test_release_config_trains_on_json_files_and_resumes(tmp_path, run_main):
     assert "resumed from the checkpoint at step 10" in second.stderr
     assert json.loads(_read(str(tmp_path / "run"), "eval_results.json"))["final"]["step"] == 20
     assert not os.path.exists(tmp_path / "run" / "figures")  # --nofigures
+
+
+def test_2d_only_keypoints_in_pixels_from_one_coco_file(tmp_path, run_main):
+    """The own-data workflow for 2D detections: the importer splits the file by image, and
+    the results name the unit of the 2D reprojection error."""
+    from c3dpo_jax.data import importers, synthetic
+
+    views = synthetic.make_split(64, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.1,
+                                 noise=0.0, perspective=False, shape_seed=0, seed=3)
+    kp = views.kp * 100 + 320  # pixels
+    coco = {"images": [{"id": i, "file_name": f"im{i // 2}.jpg"} for i in range(64)],
+            "annotations": [{"image_id": i, "keypoints": np.column_stack(
+                [kp[i], 2 * views.vis[i]]).ravel().tolist()} for i in range(64)]}
+    (tmp_path / "people.json").write_text(json.dumps(coco))
+    importers.main(["coco", str(tmp_path / "people.json"), "--out_dir", str(tmp_path)])
+    out = run_main("--config=configs/own_json.py:smoke", f"--workdir={tmp_path / 'run'}",
+                   f"--config.data.train_path={tmp_path / 'people_train.json'}",
+                   f"--config.data.test_path={tmp_path / 'people_test.json'}",
+                   "--config.model.n_keypoints=8", "--config.data.protocol=none", "--nofigures")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "(12 samples, protocol 'none')" in out.stdout  # 6 of the 32 images, 2 views each
+    assert ("reprojection: the mean 2D distance of the visible points to their reprojection, "
+            "in px\n") in out.stdout

@@ -80,7 +80,7 @@ def test_input_errors_are_one_line_before_any_work(setup):
     bad_json = _run(f"--workdir={workdir}", f"--input={root / 'broken.json'}",
                     f"--output={root / 'o.json'}")
     assert bad_json.returncode == 2
-    assert bad_json.stderr.startswith(f"error: {root / 'broken.json'} is not a JSON file: ")
+    assert bad_json.stderr.startswith(f"error: {root / 'broken.json'} is not valid JSON: ")
     assert len(bad_json.stderr.splitlines()) == 1
     with pytest.raises(ValueError, match="must end in .json or .npz"):
         predict.run("no/such/workdir", "no/such/input.json", str(root / "o.txt"))

@@ -1,6 +1,7 @@
 """reconstruct warns, in one line, about keypoints far from the training data's scale."""
 
 import jax
+import numpy as np
 import pytest
 from absl import logging
 
@@ -36,3 +37,18 @@ def test_a_warning_names_how_far_the_scale_is_from_the_training_data(
     messages.clear()
     reconstruct(params, DATA.kp[0] * factor, DATA.vis[0])  # one sample: its own spread
     assert len(messages) == (warned is not None)
+
+
+def test_views_whose_visible_points_coincide_are_named_not_blamed_on_units(params, monkeypatch):
+    messages = []
+    monkeypatch.setattr(logging, "warning", lambda msg, *args: messages.append(msg % args))
+    coincide = ("kp of sample(s) {}: the visible points coincide (all at one place), so the "
+                "view shows no shape; its 3D shape is the model's guess")
+    # 0.1 three times has a mean of 0.10000000000000002: no spread all the same.
+    reconstruct(params, np.full_like(DATA.kp, 0.1), DATA.vis)
+    assert messages == [coincide.format(list(range(len(DATA.kp))))]  # no scale to compare
+    messages.clear()
+    kp = DATA.kp.copy()
+    kp[:2] = 0.1
+    reconstruct(params, kp, DATA.vis)
+    assert messages == [coincide.format([0, 1])]  # the other views' scale is the training's

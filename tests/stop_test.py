@@ -5,7 +5,8 @@ SIGKILL at the worst moments (before the first checkpoint, while a save is in fl
 half-way through deleting an old step for ``max_to_keep``) loses at most the steps since
 the last committed checkpoint. Either way, running the same command again ends with
 parameters bitwise equal to an uninterrupted run, the same test scores, and one
-``metrics.jsonl`` record per logged step.
+``metrics.jsonl`` record per logged step; the workdir's lock goes with the process (a
+killed run's lock file locks nothing).
 
 Every run is a real ``c3dpo_jax.main`` process. The moments inside orbax's background
 threads are hit deterministically: the process runs under ``_PAUSING_MAIN``, which
@@ -26,7 +27,7 @@ import jax
 import numpy as np
 import pytest
 
-from c3dpo_jax import checkpoint
+from c3dpo_jax import checkpoint, workdir_lock
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STEPS = 60
@@ -201,6 +202,7 @@ def test_a_stop_signal_checkpoints_the_step_reached_and_the_run_resumes_bitwise(
     stopped = int(last.split()[4])
     assert stopped < STEPS and _steps(workdir)[-1] == stopped
     assert not _tmp_folders(workdir)
+    assert not (workdir / workdir_lock.LOCK_FILE).exists()  # the workdir's lock released
     with open(workdir / "metrics.jsonl") as f:  # nothing logged past the checkpoint
         assert json.loads(f.readlines()[-1])["step"] == stopped
     resumed = _run(workdir)
@@ -228,7 +230,11 @@ def test_a_kill_loses_at_most_the_steps_since_the_last_checkpoint(
         record = folder / checkpoint.CHECKSUM_FILE
         assert not record.exists() or any(
             not (folder / rel).exists() for rel in json.loads(record.read_text()))
+    # The lock file stays with the killed run's pid, and locks nothing: the kernel released
+    # its lock with the process, and the same command proceeds.
+    assert (workdir / workdir_lock.LOCK_FILE).read_text() == f"{proc.pid}\n"
     resumed = _run(workdir)
+    assert not (workdir / workdir_lock.LOCK_FILE).exists()
     if committed:
         assert f"resumed from the checkpoint at step {committed[-1]} " in resumed.stderr
     _assert_same_as(workdir, reference)

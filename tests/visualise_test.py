@@ -126,6 +126,20 @@ def test_reconstruction_figure_shows_error_axes_skeleton_hidden_points_and_up(y_
     visualise._plt().close(fig)
 
 
+@pytest.mark.parametrize("y_up", [False, True])
+def test_the_y_labels_of_the_3d_panels_read_upright(y_up):
+    """y is drawn vertical, where matplotlib's label angle wraps: it drew "y [px]" upside
+    down in the camera view (either up direction) and the side view (y up)."""
+    shape = np.random.default_rng(0).normal(size=(10, 3)) * 100 + 300
+    fig = visualise.plot_reconstruction_3d(shape, gt=shape + 3, kp=shape[:, :2], y_up=y_up,
+                                           unit="px")
+    fig.canvas.draw()  # the 3D axes place and turn their labels as they are drawn
+    front, side, _ = fig.axes[1:]
+    for ax in (front, side):
+        assert ax.get_ylabel() == "y [px]" and ax.yaxis.label.get_rotation() == 90
+    visualise._plt().close(fig)
+
+
 def test_training_curves_show_losses_and_test_error_with_baselines(run, tmp_path):
     workdir, _ = run
     fig = curves.plot_training_curves(workdir)
@@ -151,6 +165,9 @@ def test_training_curves_show_losses_and_test_error_with_baselines(run, tmp_path
     _, test = fig.axes
     assert test.get_ylabel() == "test 2D reprojection error"
     assert test.lines[0].get_ydata().tolist() == [0.2, 0.1]
+    visualise._plt().close(fig)
+    fig = curves.plot_training_curves(str(tmp_path / "metrics.jsonl"), unit="px")  # the data's
+    assert fig.axes[1].get_ylabel() == "test 2D reprojection error [px]"
     visualise._plt().close(fig)
 
 

@@ -251,3 +251,37 @@ def test_a_metrics_line_cut_short_by_a_kill_does_not_block_the_resumption(tmp_pa
     assert "dropped a line that is not a JSON record" in caplog.text
     run_records.trim_metrics(str(tmp_path), 5)
     assert path.read_text() == '{"loss": 1.0, "step": 5}\n'
+
+
+def test_a_loss_that_is_not_finite_right_after_a_resume_names_the_checkpoint(tmp_path):
+    """A checkpoint without its checksum record is only checked for finite values: damaged
+    arrays that read back as huge finite numbers load, and the first steps diverge. The
+    learning rate is not what to change then, the checkpoint is the suspect."""
+    import re
+    import shutil
+
+    import jax
+    import jax.numpy as jnp
+
+    from c3dpo_jax.state import create_train_state
+
+    workdir = str(tmp_path / "run")
+    train.train_and_evaluate(_config(), workdir)
+    spec = train.RunSpec.from_config(_config())
+    template = create_train_state(jax.random.key(0), spec.model, spec.optimizer())
+    state, _ = checkpoint.restore_latest(workdir, template)
+    step_dir = os.path.join(workdir, "checkpoints", "10")
+    shutil.rmtree(step_dir)
+    manager = checkpoint.make_manager(workdir, 10)
+    huge = jax.tree.map(lambda p: jnp.full_like(p, 3e38), state.params)  # finite, absurd
+    checkpoint.save(manager, 10, state.replace(params=huge), force=True)
+    manager.wait_until_finished()
+    manager.close()
+    os.remove(os.path.join(step_dir, checkpoint.CHECKSUM_FILE))  # as a kill before it leaves
+    with pytest.raises(FloatingPointError, match=re.escape(
+            f"right after resuming from the checkpoint {step_dir}, the first suspect (damaged "
+            "files can read back as finite numbers); training stopped: move that folder aside "
+            "to resume from the checkpoint before it")) as err:
+        train.train_and_evaluate(_config(**{"train.num_steps": 20}), workdir)
+    assert str(err.value).startswith("loss is not finite at step 10 (")
+    assert "optim.lr" not in str(err.value)

@@ -7,7 +7,8 @@
   frames, so test poses are unseen.
 - BVH motion capture: joint positions by forward kinematics, then views as above.
 - COCO-style keypoints (``annotations[i].keypoints`` = [x, y, v] * K, v in {0, 1, 2}):
-  a 2D-only training set (v >= ``min_v`` is visible).
+  a 2D-only set (v >= ``min_v`` is visible), one file or train and test files that take
+  the annotations of different images (``image_split``).
 
 The files also say how to draw their samples (docs/data.md): ``y_up`` (true for views
 of motion capture by upright cameras, false for COCO's image coordinates) and
@@ -17,7 +18,7 @@ CLI::
 
   python -m c3dpo_jax.data.importers sequence drink.npz --out_dir data/ --name drink
   python -m c3dpo_jax.data.importers bvh walk.bvh --out_dir data/ --name walk
-  python -m c3dpo_jax.data.importers coco person_keypoints.json --out data/coco_train.json
+  python -m c3dpo_jax.data.importers coco person_keypoints.json --out_dir data/ --name coco
 
 Glossary: F frames, K points, V views per frame.
 """
@@ -434,6 +435,20 @@ def coco_to_data(obj: dict, *, min_v: int = 1, min_visible: int = 2, category_id
     return data
 
 
+def image_split(images: np.ndarray, test_fraction: float, seed: int) -> np.ndarray:
+    """Boolean test mask over annotations of the images ``images`` (M,) (file names; all
+    empty: each annotation is its own): a ``test_fraction`` of the images, at least one and
+    never all, with all their annotations, so test people are in unseen pictures."""
+    images = np.asarray(images)
+    groups = np.arange(len(images)) if not any(images) else images
+    ids = np.unique(groups)
+    if len(ids) < 2:
+        raise ValueError("the annotations are all of one image: there is no other image to "
+                         "test on (--out writes them to one file)")
+    n_test = min(max(1, round(test_fraction * len(ids))), len(ids) - 1)
+    return np.isin(groups, np.random.default_rng(seed).choice(ids, n_test, replace=False))
+
+
 def _write_pair(train: KeypointData, test: KeypointData, out_dir: str, name: str, **style):
     os.makedirs(out_dir, exist_ok=True)
     paths = [os.path.join(out_dir, f"{name}_{s}.json") for s in ("train", "test")]
@@ -451,9 +466,8 @@ _SKELETON_HELP = ("lines for the pictures, stored in the files: a built-in name 
                   "cub_birds, ...) or index pairs such as 0-1,1-2,2-3")
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m c3dpo_jax.data.importers",
-                                     description=__doc__.split("\n\n")[0])
+def main(argv=None, prog: str = "c3dpo-import") -> None:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("--verbose", action="store_true",
                         help="on an error, its traceback instead of one line")
     sub = parser.add_subparsers(dest="kind", required=True)
@@ -511,7 +525,16 @@ def main(argv=None) -> None:
                            help="keep the End Sites (head top, toe tips, ...) as points too")
     p = sub.add_parser("coco", help="2D-only data from COCO-style keypoint annotations")
     p.add_argument("path", help="COCO-style keypoint annotations (.json)")
-    p.add_argument("--out", required=True, help="the JSON file to write")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--out", help="the JSON file to write (all annotations)")
+    out.add_argument("--out_dir", help="writes OUT_DIR/NAME_train.json and NAME_test.json, "
+                     "the test file with the annotations of a --test_fraction of the images")
+    p.add_argument("--name", default=None, help="with --out_dir: the dataset name (default: "
+                   "the file's stem)")
+    p.add_argument("--test_fraction", type=float, default=0.2,
+                   help="with --out_dir: fraction of the images held out (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="with --out_dir: seed of the split (default: %(default)s)")
     p.add_argument("--min_v", type=int, default=1,
                    help="a point is visible when its flag v >= this (1: labelled, 2: labelled "
                         "and visible; default: %(default)s)")
@@ -521,14 +544,18 @@ def main(argv=None) -> None:
                    help=_SKELETON_HELP + " (default: the category's 'skeleton', if any)")
     args = parser.parse_args(argv)
     if args.kind == "coco":
-        with open(args.path, encoding="utf-8-sig") as f:
-            try:
-                obj = json.load(f)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{args.path} is not a JSON file: {err}") from None
-        data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id)
-        save(data, args.out, y_up=False, unit="px",
-             skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
+        obj = json_dataset.read_json(args.path)
+        name = args.name or os.path.splitext(os.path.basename(args.path))[0]
+        data = coco_to_data(obj, min_v=args.min_v, category_id=args.category_id,
+                            name=name if args.out_dir else "coco")
+        style = dict(y_up=False, unit="px",
+                     skeleton=args.skeleton or coco_skeleton(obj, args.category_id))
+        if args.out_dir:
+            test = image_split(data.image_path, args.test_fraction, args.seed)
+            _write_pair(data.subset(~test), data.subset(test), args.out_dir, name, **style)
+            print("2D only: --config.data.protocol=none")
+            return
+        save(data, args.out, **style)
         print(f"wrote {args.out} ({len(data)} samples, K={data.n_keypoints}): "
               f"--config.model.n_keypoints={data.n_keypoints} --config.data.protocol=none "
               "(2D only)")
@@ -567,8 +594,12 @@ def cli_main() -> None:
     logging.use_absl_handler()
     logging.set_verbosity(logging.INFO)
     cli.setup_logging()
+    # The command's name as it was typed: the console script's, or "python -m ..." for this file.
+    prog = os.path.basename(sys.argv[0])
+    if prog.endswith(".py"):
+        prog = "python -m c3dpo_jax.data.importers"
     try:
-        main([a for a in argv if a != "--verbose"])
+        main([a for a in argv if a != "--verbose"], prog=prog)
     except cli.USER_ERRORS as err:
         if verbose:
             raise

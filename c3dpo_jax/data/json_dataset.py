@@ -235,6 +235,21 @@ def _write_cache(cpath: str, key: str, data: KeypointData) -> None:
         logging.warning("could not write the cache %s (%s); continuing without it", cpath, err)
 
 
+def read_json(path: str):
+    """The content of the JSON file ``path`` as every reader of the release's format reads
+    it (data, styles for the pictures, inputs to ``predict``, COCO annotations): UTF-8, a
+    byte-order mark (Windows tools write one) skipped; one-line ValueError naming the file
+    when it is not JSON."""
+    with open(path, encoding="utf-8-sig") as f:
+        try:
+            return json.load(f)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path} is not valid JSON: {err}") from None
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path} is not a UTF-8 text (JSON) file: byte {err.start} "
+                             f"is {err.object[err.start:err.start + 1]!r}") from None
+
+
 def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: bool = True
          ) -> KeypointData:
     """Reads one JSON file of the release's format (through its ``.c3dpo_cache.npz``)."""
@@ -246,31 +261,32 @@ def load(path: str, *, min_visible: int = 2, drop_invalid: bool = False, cache: 
     cpath = cache_path(path)
     if cache and (data := _read_cache(cpath, key)) is not None:
         return data
-    with open(path, encoding="utf-8-sig") as f:  # a byte-order mark (Windows tools) is skipped
-        try:
-            obj = json.load(f)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path} is not valid JSON: {err}") from None
-        except UnicodeDecodeError as err:
-            raise ValueError(f"{path} is not a UTF-8 text (JSON) file: byte {err.start} "
-                             f"is {err.object[err.start:err.start + 1]!r}") from None
-    data = parse(obj, name=name, min_visible=min_visible, drop_invalid=drop_invalid,
+    data = parse(read_json(path), name=name, min_visible=min_visible, drop_invalid=drop_invalid,
                  source=path)
     if cache:
         _write_cache(cpath, key, data)
     return data
 
 
+def _json_numbers(a: np.ndarray | np.generic) -> list | float:
+    """``a.tolist()``, float32 numbers as their shortest decimals: 362.79 where float64 would
+    write the same float32 as 362.7900085449219 (both read back as that float32)."""
+    a = np.asarray(a)
+    return (a.astype(str).astype(np.float64) if a.dtype == np.float32 else a).tolist()
+
+
 def to_json_entries(data: KeypointData) -> list[dict]:
     """``KeypointData`` -> entries of the release's format (inverse of ``parse``)."""
+    arrays = {"kp_loc": np.swapaxes(data.kp, 1, 2), "kp_vis": data.vis}
+    for field, key in (("kp3d", "kp_loc_3d"), ("class_mask", "class_mask"),
+                       ("kp_defined", "kp_defined"), ("intrinsics", "K")):
+        value = getattr(data, field)
+        if value is not None:
+            arrays[key] = np.swapaxes(value, 1, 2) if field == "kp3d" else value
+    lists = {key: _json_numbers(value) for key, value in arrays.items()}
     entries = []
     for i in range(len(data)):
-        entry = {"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist()}
-        for field, key, transpose in (("kp3d", "kp_loc_3d", True), ("class_mask", "class_mask", 0),
-                                      ("kp_defined", "kp_defined", 0), ("intrinsics", "K", 0)):
-            value = getattr(data, field)
-            if value is not None:
-                entry[key] = (value[i].T if transpose else value[i]).tolist()
+        entry = {key: values[i] for key, values in lists.items()}
         if data.image_path is not None:
             entry["image_path"] = str(data.image_path[i])
         if data.frame is not None:
@@ -280,7 +296,7 @@ def to_json_entries(data: KeypointData) -> list[dict]:
         elif data.scale is not None or (data.group is not None and data.group_names):
             entry["h36m_info"] = {}
             if data.scale is not None:
-                entry["h36m_info"]["scale"] = float(data.scale[i])
+                entry["h36m_info"]["scale"] = _json_numbers(data.scale[i])
             if data.group is not None and data.group_names:
                 entry["h36m_info"]["action_name"] = data.group_names[data.group[i]]
         entries.append(entry)
