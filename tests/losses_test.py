@@ -115,3 +115,62 @@ def test_rotations_of_a_training_example_follow_the_model_config():
     np.testing.assert_array_equal(off.augment, np.eye(2))
     np.testing.assert_array_equal(off.equivariance, np.eye(2))
     assert off.canonicalisation.shape == (0, 3, 3)
+
+
+def _procrustes_residuals(x, ref):
+    """Numpy: the residuals of the best proper rotation and of the best reflection of the
+    centred, unit-norm shape ``x`` onto ``ref`` (scipy's orthogonal Procrustes, det fixed)."""
+    from scipy.linalg import orthogonal_procrustes
+
+    a, b = (y - y.mean(0) for y in (x, ref))
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    out = {}
+    for sign in (1.0, -1.0):
+        # The best map of the given determinant: the best rotation of a with its third axis
+        # negated (sign -1), composed with that reflection.
+        flip = np.diag([1.0, 1.0, sign])
+        rot, _ = orthogonal_procrustes(a @ flip, b)
+        if np.linalg.det(rot) < 0:  # the best orthogonal map is improper: fix its det
+            u, _, vt = np.linalg.svd((a @ flip).T @ b)
+            rot = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+        out[sign] = np.linalg.norm(a @ flip @ rot - b)
+    return out[1.0], out[-1.0]
+
+
+def test_handedness_term_is_the_hinge_on_the_procrustes_evidence():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(9, 3)) * [1.0, 0.7, 0.4]
+    rots = Rotation.random(6, random_state=1).as_matrix()
+    shapes = np.einsum("mij,nj->mni", rots, mean) + 0.15 * rng.normal(size=(6, 9, 3))
+    shapes[3:] *= np.array([1.0, 1.0, -1.0])  # three mirror images
+    evidence = []
+    for x in shapes:
+        proper, mirror = _procrustes_residuals(x, mean)
+        evidence.append((mirror - proper) / (mirror + proper))
+    evidence = np.array(evidence)
+    assert np.all(evidence[:3] > 0.2) and np.all(evidence[3:] < -0.2)
+    ones = np.ones((6, 9))
+    for margin in (0.0, 0.5):
+        got = losses.handedness(jnp.asarray(shapes, jnp.float32),
+                                jnp.broadcast_to(jnp.asarray(mean, jnp.float32), shapes.shape),
+                                jnp.asarray(ones), margin)
+        np.testing.assert_allclose(got, np.mean(np.maximum(margin - evidence, 0.0)), rtol=1e-4)
+
+
+def test_handedness_term_has_finite_gradients_at_the_mean_shape_itself():
+    import jax
+
+    mean = jnp.asarray(np.random.default_rng(2).normal(size=(7, 3)), jnp.float32)
+    x = jnp.stack([mean, mean * jnp.array([[1.0, 1.0, -1.0]])])
+
+    def loss(x):
+        return losses.handedness(x, jnp.broadcast_to(mean, x.shape), jnp.ones((2, 7)), 0.1)
+
+    grad = jax.grad(loss)(x)
+    assert np.all(np.isfinite(np.asarray(grad))) and float(jnp.abs(grad[1]).sum()) > 0
+    # The shape given is held fixed: no gradient reaches it.
+    g_mean = jax.grad(lambda m: losses.handedness(x, jnp.broadcast_to(m, x.shape),
+                                                  jnp.ones((2, 7)), 0.1))(mean)
+    np.testing.assert_array_equal(np.asarray(g_mean), 0.0)

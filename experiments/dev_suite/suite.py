@@ -120,8 +120,12 @@ HUMAN_DATA = {"humans_v3": dict(views_per_pose=3, n_train_poses=3000, n_test_pos
 # A motion-capture set's views with Gaussian noise on the 2D points (not in the default
 # list; the importer's ``noise``, in units of the normalised sequence's RMS radius).
 NOISY = {"cmu131_noise04": ("cmu131", 0.04), "cmu131_noise11": ("cmu131", 0.11)}
-BASELINE = "fitted mean shape"
-ONE_SHOT = "fitted mean shape, one-shot camera"
+# The rigid fits of the training mean shape (3D ground truth C3DPO never sees) to each test
+# view: one scale for the split (the shape is in the data's units), each view's own scale,
+# and the one-shot camera; the suite's bar is the best of them on each dataset.
+RIGID_FITS = ("fitted mean shape", "fitted mean shape, per-view scale",
+              "fitted mean shape, one-shot camera")
+ONE_SHOT = RIGID_FITS[2]
 MINUTES = (2, 5, 10)
 
 FLAGS = flags.FLAGS
@@ -434,10 +438,10 @@ def summarise(workdir: str, base: dict[str, float]) -> dict:
                mirrored=res["final"].get("mirrored", float("nan")),  # runs before it: "-"
                final_over_best=final / min(curve),
                steps=res["final"]["step"], train_s=res["final"].get("train_s", float("nan")),
-               baseline=base[BASELINE], one_shot=base[ONE_SHOT],
-               zero_depth=base["zero depth"])
-    # The bar is the better of the two rigid fits (the best 2D fit is not always the best 3D).
-    row["baseline_over_final"] = min(row["baseline"], row["one_shot"]) / final
+               baseline=min(base[k] for k in RIGID_FITS), zero_depth=base["zero depth"])
+    # The bar is the best of the rigid fits (the best 2D fit is not always the best 3D).
+    row["baseline_over_final"] = row["baseline"] / final
+    row["baseline_over_global"] = row["baseline"] / row["global_"]
     return row
 
 
@@ -453,11 +457,12 @@ def _fmt(values: list[float]) -> str:
 
 
 def table(out: str, variant: str, datasets, seeds) -> str:
-    head = ["dataset", "seeds", "rigid baseline", "one-shot rigid fit", "zero depth",
+    head = ["dataset", "seeds", "rigid baseline", "zero depth",
             *(f"{m} min" for m in MINUTES),
-            "end", "end, no flip", "end, one mirror", "mirrored (2D only)", "best on curve",
-            "final / best (worst seed)", "better rigid fit / final (worst seed)",
-            "steps, train min"]
+            "end, up to one mirror (mpjpe_global)", "end, per-view flip (the paper's mpjpe)",
+            "end, as it is", "global / paper's (worst seed)", "mirrored (2D only)",
+            "best on curve", "final / best (worst seed)",
+            "rigid / global (worst seed)", "rigid / paper's (worst seed)", "steps, train min"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for d in datasets:
         done = [w for s in seeds if is_finished(w := run_dir(out, variant, d, s))]
@@ -466,12 +471,14 @@ def table(out: str, variant: str, datasets, seeds) -> str:
         base = baseline_scores(d, out)
         rows = [summarise(w, base) for w in done]
         col = {k: [r[k] for r in rows] for k in rows[0]}
-        cells = [d, str(len(rows)), _fmt(col["baseline"][:1]), _fmt(col["one_shot"][:1]),
-                 _fmt(col["zero_depth"][:1]),
-                 *(_fmt(col[f"{m} min"]) for m in MINUTES), _fmt(col["end"]),
-                 _fmt(col["no_flip"]), _fmt(col["global_"]), _fmt(col["mirrored"]),
-                 _fmt(col["best"]),
-                 f"{max(col['final_over_best']):.2f}", f"{min(col['baseline_over_final']):.2f}x",
+        cells = [d, str(len(rows)), _fmt(col["baseline"][:1]), _fmt(col["zero_depth"][:1]),
+                 *(_fmt(col[f"{m} min"]) for m in MINUTES), _fmt(col["global_"]),
+                 _fmt(col["end"]), _fmt(col["no_flip"]),
+                 f"{max(g / e for g, e in zip(col['global_'], col['end'])):.2f}",
+                 _fmt(col["mirrored"]), _fmt(col["best"]),
+                 f"{max(col['final_over_best']):.2f}",
+                 f"{min(col['baseline_over_global']):.2f}x",
+                 f"{min(col['baseline_over_final']):.2f}x",
                  f"{int(np.mean(col['steps']))}, {np.mean(col['train_s']) / 60:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
