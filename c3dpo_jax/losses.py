@@ -257,7 +257,7 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
     ``batch`` holds ``kp`` (B, N, 2), ``vis`` (B, N) and ``class_mask`` (B, N) (ones for
     single-class data), as ``KeypointData.model_inputs()`` gives them; ``intrinsics``
     (B, 3, 3) for perspective models, and ``kp3d`` (B, N, 3) when ``loss_cfg.w_supervised``
-    is set. ``model_cfg.keypoint_rescale`` must be resolved (``train.resolve_input_scale``).
+    is set. ``model_cfg.keypoint_rescale`` must be resolved (``resolve.resolve_input_scale``).
     """
 
     def loss_fn(params, batch_stats, batch, key, step=0):

@@ -154,7 +154,7 @@ class ModelConfig:
     # factorisation (people at different distances from the camera; the training loss then
     # weighs every view alike; orthographic models only); "auto" (a training config's value),
     # "per_view" when the training views' sizes differ widely, else "global"
-    # (``train.resolve_keypoint_scaling``).
+    # (``resolve.resolve_keypoint_scaling``).
     keypoint_scaling: str = "global"
     projection_type: str = "orthographic"  # "orthographic" | "perspective"
     perspective_depth_threshold: float = 0.1
@@ -209,10 +209,10 @@ class ModelConfig:
     # its mirror image's) or a body of a known joint order (``HANDEDNESS_REFERENCES``):
     # each view is then given the handedness of that body, so that a model whose mean shape
     # came out mirrored still gives the body's own. "auto" (a training config's value,
-    # resolved from the training views by ``train.resolve_handedness``): a body whose
+    # resolved from the training views by ``resolve.resolve_handedness``): a body whose
     # projections fit the training views, with ``test_time_one_handedness`` on, else the
     # mean shape. "body": the body in ``test_time_handedness_body`` (a training config may
-    # name a file instead, ``BODY_FILE_SUFFIXES``, which ``train.resolve_handedness`` reads).
+    # name a file instead, ``BODY_FILE_SUFFIXES``, which ``resolve.resolve_handedness`` reads).
     test_time_handedness_reference: str = "mean_shape"
     # With test_time_handedness_reference="body": one 3D example of the points, N rows of
     # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
@@ -399,11 +399,11 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
     if cfg.keypoint_rescale == 0:  # the config's "from the data", never resolved
         raise ValueError("model.keypoint_rescale=0 means 'set it from the training data' and "
                          "was not resolved: the network would see zeros. Resolve it first "
-                         "(train.resolve_input_scale(config, train_data), as "
+                         "(resolve.resolve_input_scale(config, train_data), as "
                          "train_and_evaluate does; a loaded model has it)")
     if cfg.keypoint_scaling == "auto":
         raise ValueError("model.keypoint_scaling='auto' means 'from the training data' and was "
-                         "not resolved (train.resolve_keypoint_scaling(config, train_data), as "
+                         "not resolved (resolve.resolve_keypoint_scaling(config, train_data), as "
                          "train_and_evaluate does; a loaded model has it)")
     kp = jnp.where(vis[:, None] > 0, kp, 0.0)
     if cfg.projection_type == "perspective":
@@ -694,7 +694,7 @@ def reference_problem(name, n_keypoints: int, one_handedness: bool = True,
             return why
         return "" if one_handedness else "used with test_time_one_handedness=True only"
     if is_body_file(name):
-        return ("a body file is read when training starts (train.resolve_handedness); a "
+        return ("a body file is read when training starts (resolve.resolve_handedness); a "
                 "model holds its points as 'body'")
     if not isinstance(name, str) or name not in HANDEDNESS_REFERENCES:
         return f"known: {', '.join(HANDEDNESS_REFERENCES)}, body, auto"
@@ -724,7 +724,7 @@ def handedness_reference(name: str, body=()) -> Array | None:
         return jnp.asarray(np.asarray(body, np.float32))
     if name == "auto":
         raise ValueError("model.test_time_handedness_reference='auto' means 'from the training "
-                         "data' and was not resolved (train.resolve_handedness(config, "
+                         "data' and was not resolved (resolve.resolve_handedness(config, "
                          "train_data), as train_and_evaluate does; a loaded model has it)")
     if HANDEDNESS_REFERENCES[name] is None:
         return None

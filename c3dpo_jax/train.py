@@ -43,7 +43,6 @@ from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from c3dpo_jax import (
-    baselines,
     checkpoint,
     device_data,
     evaluation,
@@ -52,7 +51,7 @@ from c3dpo_jax import (
     validation,
     workdir_lock,
 )
-from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, load_splits
+from c3dpo_jax.data import KeypointData, load_splits
 from c3dpo_jax.data.dataset import fingerprint
 from c3dpo_jax.inference import (
     evaluate_baselines,
@@ -62,6 +61,7 @@ from c3dpo_jax.inference import (
 )
 from c3dpo_jax.losses import RAMPED_TERMS, LossConfig, make_loss_fn
 from c3dpo_jax.reconstruct import load, split_path
+from c3dpo_jax.resolve import resolve_from_data
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -130,7 +130,8 @@ predict = predict_split
 def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
                        n_keypoints: int) -> None:
     """The splits' keypoint counts, against each other and then the model's: first of all,
-    since what is worked out from the data (``resolve_from_data``) assumes them equal."""
+    since what is worked out from the data (``resolve.resolve_from_data``) assumes them
+    equal."""
     if train_data.n_keypoints != test_data.n_keypoints:
         raise ValueError(
             f"the train split has {train_data.n_keypoints} keypoints and the test split "
@@ -332,140 +333,6 @@ class _StopSignals:
     def __exit__(self, *exc):
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
-
-
-def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.keypoint_rescale = 0`` means "from the data": a copy of ``config`` with the
-    value a saved config (``saved``, a workdir's config.json) holds, else the one
-    ``auto_keypoint_rescale`` gives for the training split (written to config.json, so
-    inference uses the same number); other values are returned unchanged."""
-    if config.model.keypoint_rescale != 0:
-        return config
-    config = config.copy_and_resolve_references()
-    perspective = config.model.projection_type == "perspective"
-    config.model.keypoint_rescale = ((saved or {}).get("model", {}).get("keypoint_rescale")
-                                     or auto_keypoint_rescale(train_data, calibrate=perspective))
-    logging.info("input scale from the training data: model.keypoint_rescale=%.6g",
-                 config.model.keypoint_rescale)
-    return config
-
-
-# The median 2D distance (over each view's RMS radius) of a body of
-# ``model.HANDEDNESS_REFERENCES``, under each view's best scaled orthographic camera, to the
-# training views below which ``resolve_handedness`` takes the views for that body's joint
-# order. "h36m" on 500 training views: CMU subject 131 0.31, the built-in humans 0.21,
-# DeepMimic's joints in its order 0.36; the same views with their points shuffled 0.91-0.98.
-# "coco" on CMU 131's people in COCO's order 0.28 (the h36m body there: 0.78).
-BODY_FIT_2D = 0.6
-BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
-
-
-def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VIEWS) -> float:
-    """The median over up to ``n_views`` views of ``data`` of the RMS 2D distance of the
-    body's projection under the view's best rigid camera (``baselines.fit_camera``) to its
-    visible points, over their RMS radius about their mean (0: the body itself; about 1:
-    no likeness)."""
-    idx = np.unique(np.linspace(0, len(data) - 1, min(n_views, len(data))).astype(int))
-    kp, vis = data.kp[idx].astype(np.float64), data.vis[idx].astype(np.float64)
-    camera = baselines.fit_camera(np.asarray(body, np.float64), kp, vis)
-    error = baselines.reprojection_residual(baselines.project(*camera), kp, vis)
-    centred = kp - baselines.visible_mean(kp, vis)[:, None]
-    radius = baselines.visible_mean((centred ** 2).sum(-1, keepdims=True), vis)[:, 0]
-    return float(np.median(np.sqrt(error / np.maximum(radius, 1e-12))))
-
-
-def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.test_time_handedness_reference = "auto"`` means "from the data": a copy of
-    ``config`` with the value (and ``test_time_one_handedness``) a saved config holds, else
-    the body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
-    projections fit the training views best, if they fit it (``body_fit_2d`` below
-    ``BODY_FIT_2D``: points in its joint order), with ``test_time_one_handedness`` on, else
-    "mean_shape" (and ``test_time_one_handedness`` as it is). A body file
-    (``model.BODY_FILE_SUFFIXES``) is read into ``test_time_handedness_body`` with the
-    reference "body" and ``test_time_one_handedness`` on (a saved config's body, when it
-    has one: a resumed run keeps the body it started with). Other values are returned
-    unchanged."""
-    reference = config.model.get("test_time_handedness_reference")
-    before = (saved or {}).get("model", {})
-    if model.is_body_file(reference):
-        config = config.copy_and_resolve_references()
-        if before.get("test_time_handedness_reference") == "body":
-            body = np.asarray(before["test_time_handedness_body"], np.float64)
-        else:
-            body = model.read_body(reference)
-        if why := model.body_problem(body, config.model.n_keypoints):
-            raise ValueError(f"config.model.test_time_handedness_reference={reference!r} "
-                             f"({why})")
-        config.model.test_time_handedness_reference = "body"
-        config.model.test_time_handedness_body = tuple(map(tuple, body.tolist()))
-        config.model.test_time_one_handedness = True
-        return config
-    if reference != "auto":
-        return config
-    config = config.copy_and_resolve_references()
-    if before.get("test_time_handedness_reference", "auto") != "auto":
-        config.model.test_time_handedness_reference = before["test_time_handedness_reference"]
-        config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))
-        return config
-    config.model.test_time_handedness_reference = "mean_shape"
-    if config.model.projection_type != "orthographic":
-        return config
-    fits = {name: body_fit_2d(np.asarray(model.handedness_reference(name)), train_data)
-            for name, n in model.HANDEDNESS_REFERENCES.items()
-            if n is not None and n == config.model.n_keypoints}
-    name = min(fits, key=fits.get, default=None)  # bodies of one number of points: the nearest
-    if name is not None and fits[name] < BODY_FIT_2D:
-        config.model.test_time_handedness_reference = name
-        config.model.test_time_one_handedness = True
-        logging.info("handedness at inference from the %r body: the training views fit its "
-                     "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
-    return config
-
-
-# How much views that look alike differ in size (``data.alike_view_size_ratio``) above
-# which ``resolve_keypoint_scaling`` scales each view by its own size: between the largest
-# among the development suite's sets, each seen at one distance (the built-in humans' 1.07,
-# whose bodies differ in height; the others 1.01-1.05), and the same human sets with every
-# view scaled by a factor between 0.5 and 2 (1.48-1.50), where one input scale for every
-# view failed (CMU 131: 0.51, worse than zero depth; per view 0.12) and per view fails at one
-# distance (CMU 131 0.17 against 0.08, the shark 0.28 against 0.03): the geometric mean of
-# their logarithms (experiments/dev_suite, "People at different distances").
-ALIKE_SIZE_RATIO = 1.18
-
-
-def resolve_keypoint_scaling(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.keypoint_scaling = "auto"`` means "from the data": a copy of ``config`` with
-    the value a saved config holds ("global" for one that predates the option), else
-    "per_view" for an orthographic model whose training views that look alike differ in
-    size by more than ``ALIKE_SIZE_RATIO`` (subjects at different distances), else
-    "global"; other values are returned unchanged."""
-    if config.model.get("keypoint_scaling") != "auto":
-        return config
-    config = config.copy_and_resolve_references()
-    if saved and "model" in saved:  # a run made before the option had one input scale
-        config.model.keypoint_scaling = saved["model"].get("keypoint_scaling", "global")
-        if config.model.keypoint_scaling != "auto":
-            return config
-    config.model.keypoint_scaling = "global"
-    if config.model.projection_type != "orthographic":
-        return config
-    ratio = alike_view_size_ratio(train_data)
-    if ratio > ALIKE_SIZE_RATIO:
-        config.model.keypoint_scaling = "per_view"
-        logging.info("each view scaled by its own size (model.keypoint_scaling=per_view): "
-                     "training views that look alike differ in size by %.2fx (median), above "
-                     "%.2fx, as for subjects at different distances", ratio, ALIKE_SIZE_RATIO)
-    return config
-
-
-def resolve_from_data(config, train_data: KeypointData, saved: dict | None = None):
-    """``config`` with the settings it leaves to the training data resolved: the input scale
-    (``resolve_input_scale``), the scaling of each view (``resolve_keypoint_scaling``) and the
-    handedness at inference (``resolve_handedness``), each from ``saved`` (a workdir's
-    config.json) when it holds them."""
-    config = resolve_keypoint_scaling(resolve_input_scale(config, train_data, saved),
-                                      train_data, saved)
-    return resolve_handedness(config, train_data, saved)
 
 
 def _start_from(state: TrainState, path: str) -> TrainState:

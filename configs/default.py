@@ -123,7 +123,7 @@ def cpu_recipe(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     c.model.shape_basis_size = 10
     c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 256
     c.model.n_layers = c.model.canonicalization_n_layers = 3
-    c.model.keypoint_rescale = 0.0  # from the training data (train.resolve_input_scale)
+    c.model.keypoint_rescale = 0.0  # from the training data (resolve.resolve_input_scale)
     c.model.argmin_translation = True  # robust to occluded points (paper Sec. 4.4)
     c.model.z_augment = True
     c.model.z_augment_rot_angle = 0.3925

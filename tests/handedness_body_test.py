@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from c3dpo_jax import C3DPOParams, model, reconstruct, train
+from c3dpo_jax import C3DPOParams, model, reconstruct, resolve, train
 from c3dpo_jax.data import KeypointData
 from configs import default
 
@@ -134,7 +134,7 @@ def test_a_body_file_is_read_and_a_bad_one_named(tmp_path, suffix):
 
 
 def test_training_reads_the_body_file_into_the_model(tmp_path):
-    """``train.resolve_handedness``: a body file named in the config becomes the model's
+    """``resolve.resolve_handedness``: a body file named in the config becomes the model's
     "body" with one handedness on; a resumed run keeps the body it started with; a body of
     another number of points is refused in one line."""
     path = tmp_path / "rig.npy"
@@ -143,17 +143,17 @@ def test_training_reads_the_body_file_into_the_model(tmp_path):
     c.model.n_keypoints = K
     c.model.test_time_handedness_reference = str(path)
     data = KeypointData(kp=np.zeros((4, K, 2)), vis=np.ones((4, K)))  # not read for a file
-    got = train.resolve_handedness(c, data).model
+    got = resolve.resolve_handedness(c, data).model
     assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("body", True)
     np.testing.assert_allclose(np.asarray(got.test_time_handedness_body), _rig())
     model.ModelConfig.from_dict(got)  # a valid model config
     earlier = {"model": {"test_time_handedness_reference": "body",
                          "test_time_handedness_body": _rig(1).tolist()}}
-    kept = train.resolve_handedness(c, data, earlier).model
+    kept = resolve.resolve_handedness(c, data, earlier).model
     np.testing.assert_allclose(np.asarray(kept.test_time_handedness_body), _rig(1))
     c.model.n_keypoints = K + 1
     with pytest.raises(ValueError, match=r"rig.npy' \(a body of the model's 10 points"):
-        train.resolve_handedness(c, data)
+        resolve.resolve_handedness(c, data)
 
 
 def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):

@@ -108,7 +108,7 @@ def test_an_unresolved_input_scale_is_refused_not_trained_on_zeros():
     # resolves it, a hand-made step must too.
     cfg = dataclasses.replace(CFG, keypoint_rescale=0.0)
     variables = model.init_variables(jax.random.key(0), cfg)
-    with pytest.raises(ValueError, match=r"keypoint_rescale=0 .*\(train\.resolve_input_scale"):
+    with pytest.raises(ValueError, match=r"keypoint_rescale=0 .*\(resolve\.resolve_input_scale"):
         model.forward_eval(variables, jnp.ones((8, 2)), jnp.ones(8), jnp.ones(8), None, cfg)
 
 

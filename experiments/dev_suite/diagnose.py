@@ -46,7 +46,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import literal, override, run_main  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, model, run_records, train  # noqa: E402
+from c3dpo_jax import baselines, evaluation, model, resolve, run_records, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -138,7 +138,7 @@ def main(argv):
     n = min(FLAGS.n_train_views, len(train_data)) // vpf * vpf
     start = np.random.default_rng(0).integers(0, (len(train_data) - n) // vpf + 1) * vpf
     train_sub = train_data.subset(np.arange(start, start + n))  # whole frames, in order
-    c = train.resolve_from_data(c, train_data)
+    c = resolve.resolve_from_data(c, train_data)  # once, before training
     spec = train.RunSpec.from_config(c)
     os.makedirs(FLAGS.diag_out, exist_ok=True)
     records = _Records(os.path.join(FLAGS.diag_out, "diagnostics.jsonl"))

@@ -25,7 +25,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import run_main  # noqa: E402
 
-from c3dpo_jax import train  # noqa: E402
+from c3dpo_jax import resolve, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -40,7 +40,7 @@ def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     test_data = json_dataset.load(info["test"])
-    c = train.resolve_from_data(c, json_dataset.load(info["train"]))
+    c = resolve.resolve_from_data(c, json_dataset.load(info["train"]))  # once, before training
     spec = train.RunSpec.from_config(c)
     taus = [float(t) for t in FLAGS.taus]
     emas, last = {}, {"step": 0}

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
-from c3dpo_jax import baselines, evaluation, model, train
+from c3dpo_jax import baselines, evaluation, model, resolve, train
 
 FLAGS = flags.FLAGS
 
@@ -127,7 +127,7 @@ def main(argv):
     train_data, test_data, protocol = run.load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
     c = run.recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
-    model_cfg = model.ModelConfig.from_dict(train.resolve_from_data(c, train_data).model)
+    model_cfg = model.ModelConfig.from_dict(resolve.resolve_from_data(c, train_data).model)
     with open(FLAGS.variables, "rb") as f:
         variables = flax.serialization.msgpack_restore(f.read())
     result = diagnose(variables, train_data, test_data, protocol, model_cfg, FLAGS.noise_var)
