@@ -3,11 +3,10 @@
 ``resolve_from_data(config, train_data, saved)`` returns a copy of the config with each of
 them set: the input scale (``model.keypoint_rescale = 0``), the scaling of each view
 (``model.keypoint_scaling = "auto"``) and the body whose handedness the views take at
-inference (``model.test_time_handedness_reference``: "auto" or a body file). A run's
-config.json holds the values, so that inference, a resumed run and ``--mode=eval`` use the
-same ones: ``saved`` (a workdir's config.json) wins where it has them.
-``train.train_and_evaluate`` and ``train.evaluate_checkpoint`` call it; so do experiments
-that build a model by hand.
+inference (``inference.handedness_reference``: "auto" or a body file). A run's config.json
+holds the values, so that inference, a resumed run and ``--mode=eval`` use the same ones:
+``saved`` (a workdir's config.json) wins where it has them. ``train.train_and_evaluate``
+and ``train.evaluate_checkpoint`` call it; so do experiments that build a model by hand.
 
 Glossary: M views of the training split, N keypoints.
 """
@@ -15,8 +14,8 @@ Glossary: M views of the training split, N keypoints.
 import numpy as np
 from absl import logging
 
-from c3dpo_jax import baselines, model
-from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale
+from c3dpo_jax import baselines, lift
+from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, bodies
 
 # experiments/dev_suite, "The handedness of a human body".
 BODY_FIT_2D = 0.6  # resolve_handedness: a body's fit below it names the views' joint order
@@ -41,8 +40,6 @@ def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = N
     return config
 
 
-
-
 def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VIEWS) -> float:
     """The median over up to ``n_views`` views of ``data`` of the RMS 2D distance of the
     body's projection under the view's best rigid camera (``baselines.fit_camera``) to its
@@ -58,48 +55,45 @@ def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VI
 
 
 def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.test_time_handedness_reference = "auto"`` means "from the data": a copy of
-    ``config`` with the value (and ``test_time_one_handedness``) a saved config holds, else
-    the body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
+    """``inference.handedness_reference = "auto"`` means "from the data": a copy of
+    ``config`` with the value (and ``one_handedness``) a saved config holds, else the
+    built-in body (``bodies.HUMAN_BODIES``) of the model's number of points whose
     projections fit the training views best, if they fit it (``body_fit_2d`` below
-    ``BODY_FIT_2D``: points in its joint order), with ``test_time_one_handedness`` on, else
-    "mean_shape" (and ``test_time_one_handedness`` as it is). A body file
-    (``model.BODY_FILE_SUFFIXES``) is read into ``test_time_handedness_body`` with the
-    reference "body" and ``test_time_one_handedness`` on (a saved config's body, when it
-    has one: a resumed run keeps the body it started with). Other values are returned
-    unchanged."""
-    reference = config.model.get("test_time_handedness_reference")
-    before = (saved or {}).get("model", {})
-    if model.is_body_file(reference):
+    ``BODY_FIT_2D``: points in its joint order), with ``one_handedness`` on, else
+    "mean_shape" (and ``one_handedness`` as it is). A body file
+    (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with the reference
+    "body" and ``one_handedness`` on (a saved config's body, when it has one: a resumed run
+    keeps the body it started with). Other values are returned unchanged."""
+    reference = config.inference.handedness_reference
+    before = lift.saved_options(saved or {})
+    if bodies.is_body_file(reference):
         config = config.copy_and_resolve_references()
-        if before.get("test_time_handedness_reference") == "body":
-            body = np.asarray(before["test_time_handedness_body"], np.float64)
+        if before.get("handedness_reference") == "body":
+            body = np.asarray(before["handedness_body"], np.float64)
         else:
-            body = model.read_body(reference)
-        if why := model.body_problem(body, config.model.n_keypoints):
-            raise ValueError(f"config.model.test_time_handedness_reference={reference!r} "
-                             f"({why})")
-        config.model.test_time_handedness_reference = "body"
-        config.model.test_time_handedness_body = tuple(map(tuple, body.tolist()))
-        config.model.test_time_one_handedness = True
+            body = bodies.read_body(reference)
+        if why := bodies.body_problem(body, config.model.n_keypoints):
+            raise ValueError(f"config.inference.handedness_reference={reference!r} ({why})")
+        config.inference.handedness_reference = "body"
+        config.inference.handedness_body = tuple(map(tuple, body.tolist()))
+        config.inference.one_handedness = True
         return config
     if reference != "auto":
         return config
     config = config.copy_and_resolve_references()
-    if before.get("test_time_handedness_reference", "auto") != "auto":
-        config.model.test_time_handedness_reference = before["test_time_handedness_reference"]
-        config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))
+    if before.get("handedness_reference", "auto") != "auto":
+        config.inference.handedness_reference = before["handedness_reference"]
+        config.inference.one_handedness = bool(before.get("one_handedness"))
         return config
-    config.model.test_time_handedness_reference = "mean_shape"
+    config.inference.handedness_reference = "mean_shape"
     if config.model.projection_type != "orthographic":
         return config
-    fits = {name: body_fit_2d(np.asarray(model.handedness_reference(name)), train_data)
-            for name, n in model.HANDEDNESS_REFERENCES.items()
-            if n is not None and n == config.model.n_keypoints}
+    fits = {name: body_fit_2d(bodies.human_body(name), train_data)
+            for name, n in bodies.HUMAN_BODIES.items() if n == config.model.n_keypoints}
     name = min(fits, key=fits.get, default=None)  # bodies of one number of points: the nearest
     if name is not None and fits[name] < BODY_FIT_2D:
-        config.model.test_time_handedness_reference = name
-        config.model.test_time_one_handedness = True
+        config.inference.handedness_reference = name
+        config.inference.one_handedness = True
         logging.info("handedness at inference from the %r body: the training views fit its "
                      "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
     return config

@@ -46,6 +46,7 @@ from c3dpo_jax import (
     checkpoint,
     device_data,
     evaluation,
+    lift,
     model,
     run_records,
     validation,
@@ -53,12 +54,8 @@ from c3dpo_jax import (
 )
 from c3dpo_jax.data import KeypointData, load_splits
 from c3dpo_jax.data.dataset import fingerprint
-from c3dpo_jax.inference import (
-    evaluate_baselines,
-    evaluate_split,
-    make_eval_fn,
-    predict_split,
-)
+from c3dpo_jax.inference import evaluate_baselines, evaluate_split
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.losses import RAMPED_TERMS, LossConfig, make_loss_fn
 from c3dpo_jax.reconstruct import load, split_path
 from c3dpo_jax.resolve import resolve_from_data
@@ -119,12 +116,6 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
         return jax.lax.scan(body, state, None, length=n_steps)
 
     return chunk
-
-
-# The eval path of a split lives in ``inference``; ``make_eval_fn``, ``predict_split`` and
-# ``evaluate_split`` stay importable from here, and ``predict`` is ``predict_split``'s
-# older name (the experiments' scripts use it; it clashed with the ``predict`` module).
-predict = predict_split
 
 
 def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
@@ -201,11 +192,13 @@ def _progress_bar(**kwargs):
 class RunSpec:
     """What a config asks the training loop to do, resolved once (no ml_collections below).
 
-    ``total_steps`` is ``train.num_steps`` or ``epochs * steps_per_epoch``; ``eval_every``
-    is in steps (``train.eval_every_steps``, else ``eval_every_epochs`` epochs; 0: only the
-    final evaluation)."""
+    ``inference`` is how its evaluations lift the test views (a training config's may hold
+    what ``resolve.resolve_handedness`` resolves). ``total_steps`` is ``train.num_steps`` or
+    ``epochs * steps_per_epoch``; ``eval_every`` is in steps (``train.eval_every_steps``,
+    else ``eval_every_epochs`` epochs; 0: only the final evaluation)."""
 
     model: model.ModelConfig
+    inference: InferenceConfig
     optim: OptimConfig
     loss: LossConfig
     batch_size: int
@@ -219,6 +212,7 @@ class RunSpec:
         steps_per_epoch = max(t.samples_per_epoch // t.batch_size, 1)
         eval_every = t.get("eval_every_steps", 0) or t.eval_every_epochs * steps_per_epoch
         return cls(model=model.ModelConfig.from_dict(config.model),
+                   inference=InferenceConfig.from_dict(config.get("inference", {})),
                    optim=OptimConfig.from_dict(config.optim), loss=LossConfig(**config.loss),
                    batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
                    total_steps=t.num_steps or t.epochs * steps_per_epoch,
@@ -382,6 +376,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                   checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
     config = resolve_from_data(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
+    options = lift.inference_config(spec.model, spec.inference)
     for warning in spec.warnings():
         logging.warning("%s", warning)
     if spec.batch_size > len(train_data):
@@ -429,11 +424,10 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh,
                                      spec.loss.multiview_views if by_frame else 0),
                     static_argnames="n_steps", donate_argnums=0)
-    eval_fn = jax.jit(make_eval_fn(spec.model))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
     def evaluate(state, step):
-        res = evaluate_split(state.variables, test_data, spec.model, protocol, eval_fn, eval_bs)
+        res = evaluate_split(state.variables, test_data, spec.model, options, protocol, eval_bs)
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
@@ -512,8 +506,9 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     return results
 
 
-# Model fields that may differ between a run and its scoring (``--mode=eval``): besides
-# the ``test_time_*`` options, how the matmuls are done and what only training reads.
+# Model fields that may differ between a run and its scoring (``--mode=eval``): how the
+# matmuls are done and what only training reads (the inference options are a config of
+# their own, ``lift.InferenceConfig``).
 _SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_angle",
                     "n_rand_samples", "canonicalization_rot_angle", "weight_init_std")
 
@@ -523,14 +518,16 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
     """Refuses in one line to score a workdir's checkpoints with a config whose model
     differs from the one its run trained (other parameter shapes, or other settings such as
     the input scale, which would score another function of the same parameters), naming
-    the fields that differ; the inference options (``test_time_*``, ``matmul_precision``)
-    and the fields only training reads (``_SCORING_OPTIONS``) may differ."""
+    the fields that differ; ``matmul_precision`` and the fields only training reads
+    (``_SCORING_OPTIONS``) may differ, and the inference options are not the model's (a
+    saved model section that holds them, ``model.MOVED_TO_INFERENCE``, is read without
+    them)."""
     if not saved or "model" not in saved:
         return
 
     def network(fields: dict) -> dict:
         return {k: v for k, v in fields.items()
-                if not k.startswith("test_time_") and k not in _SCORING_OPTIONS}
+                if k not in model.MOVED_TO_INFERENCE and k not in _SCORING_OPTIONS}
 
     now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
     diffs = checkpoint.differences({"model": network(saved["model"])}, {"model": network(now)})
@@ -544,15 +541,15 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
                      f"{more}); evaluate it with the config it was trained with")
 
 
-def _inference_options(config, saved: dict | None) -> dict:
-    """The config's ``model.test_time_*`` options that differ from the run's saved config
-    (the others are in its config.json; an option the run's config predates counts as its
-    default, which such a run used)."""
+def _inference_options(options: InferenceConfig, saved: dict | None) -> dict:
+    """The inference options of ``options`` that differ from the run's saved config's
+    (``lift.saved_options``: an option the run's config predates counts as its default,
+    which such a run used)."""
     if not saved or "model" not in saved:
         return {}
-    now = json.loads(json.dumps(config.model.to_dict()))
-    before = {**json.loads(json.dumps(model.ModelConfig().to_dict())), **saved["model"]}
-    return {k: v for k, v in now.items() if k.startswith("test_time_") and before[k] != v}
+    now = json.loads(json.dumps(options.to_dict()))  # tuples as the saved JSON lists
+    before = {**json.loads(json.dumps(InferenceConfig().to_dict())), **lift.saved_options(saved)}
+    return {k: v for k, v in now.items() if before[k] != v}
 
 
 @model.single_precision
@@ -565,8 +562,9 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     final scores of a later step: ``run_records.left_unwritten``); its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
-    (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
-    differ, since the history's records were made with the run's.
+    (``config.inference``, checked against the model by ``lift.inference_config``) differ
+    from the run's, ``final["inference"]`` records those that differ, since the history's
+    records were made with the run's.
     """
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
@@ -575,17 +573,18 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
+    options = lift.inference_config(model_cfg, spec.inference)
     template = model.variables_shape(model_cfg)
     _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
     _check_data(test_data, model_cfg, "test")
-    final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
+    final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     before = run_records.read_results(workdir)
     clock = run_records.clock_at(before, step)
     final = dict(step=step, epoch=step // spec.steps_per_epoch,
                  **({} if clock is None else {"train_s": clock}), **final)
-    inference = _inference_options(config, saved)
+    inference = _inference_options(options, saved)
     if inference:
         final["inference"] = inference
     results = dict(before, final=final,

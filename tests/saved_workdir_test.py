@@ -44,8 +44,8 @@ def test_a_saved_workdir_scores_the_recorded_scores(tmp_path):
     workdir = shutil.copytree(WORKDIR, tmp_path / "run")
     config = cli.get_config("configs/synthetic.py:smoke")
     config.unlock()
-    config.model.test_time_one_handedness = True
-    config.model.test_time_turns = 3
+    config.inference.one_handedness = True
+    config.inference.turns = 3
     got = train.evaluate_checkpoint(config, str(workdir), save=False)
     want = json.loads((DATA / "saved_workdir_scores.json").read_text())
     assert "inference" not in got["final"]  # the run's own options
