@@ -74,7 +74,12 @@ class InferenceConfig:
       one_handedness: give every view the handedness of ``handedness_reference``: a view
         whose canonical shape is, up to a rotation, nearer to the reference's mirror
         image than to the reference is given its mirror image, which fits the 2D points
-        equally (``one_handedness``; orthographic models only).
+        equally (``one_handedness``; orthographic models only). Without it, a body
+        reference gives the whole model one decision: every view is mirrored, as
+        ``one_handedness`` mirrors one, when the basis' mean shape is nearer, up to a
+        proper rotation, to the body's mirror image than to the body, and none otherwise
+        (the views keep the model's own mix of handednesses, all of them turned to the
+        body's side when the model's mean shape is the body's mirror image).
       handedness_reference: "mean_shape" (the basis' mean shape, whose own handedness the
         2D views leave open), a built-in body of ``HANDEDNESS_REFERENCES`` ("h36m",
         "coco": every view gets a real body's handedness, so a model whose mean shape came
@@ -180,10 +185,6 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
     elif len(body) and reference != "body":
         found.append(f"handedness_body is given but handedness_reference is {reference!r}, "
                      "not 'body'")
-    elif (reference == "body" or HANDEDNESS_REFERENCES.get(reference)) and \
-            not v["one_handedness"]:
-        found.append(f"handedness_reference={reference!r} (used with one_handedness=True "
-                     "only)")
     return found
 
 
@@ -203,6 +204,10 @@ def problems(options: InferenceConfig, model_cfg: ModelConfig, resolved: bool = 
         found.append(f"refine_iters={options.refine_iters} ({why})")
     if why := model.orthographic_only(options.one_handedness, "False", projection):
         found.append(f"one_handedness=True ({why})")
+    elif why := model.orthographic_only(
+            options.handedness_reference not in ("mean_shape", "auto"), "'mean_shape'",
+            projection):
+        found.append(f"handedness_reference={options.handedness_reference!r} ({why})")
     reference, n = options.handedness_reference, model_cfg.n_keypoints
     if resolved and reference == "auto":
         found.append("handedness_reference='auto' (a training setting, resolved from the "
@@ -307,8 +312,6 @@ def reference_body(reference, body=()) -> np.ndarray | None:
 
 def options_body(options: InferenceConfig) -> np.ndarray | None:
     """``forward_eval``'s ``body`` for ``options``, float32 (None: none is used)."""
-    if not options.one_handedness:
-        return None
     body = reference_body(options.handedness_reference, options.handedness_body)
     return None if body is None else np.asarray(body, np.float32)
 
@@ -394,6 +397,13 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
         mirrored = sum(handedness_evidence(x_canon, r, class_mask) for r in reference) < 0
     else:
         mirrored = _nearer_mirror(x_canon, reference, class_mask)
+    return mirror_if(mirrored, x_cam, t, x_canon, rot, theta)
+
+
+def mirror_if(mirrored, x_cam, t, x_canon, rot, theta):
+    """``(x_cam, x_canon, rot, theta, flag)`` of one view, its mirror image where
+    ``mirrored`` (a bool scalar) as ``one_handedness`` describes it, and 1.0 there, else
+    the view as it is and 0.0."""
     flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
     x_cam = (x_cam - t[None]) * flip[None] + t[None]
     theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
@@ -491,16 +501,23 @@ def _turned_depth(cfg, options, net, variables, kp_norm, vis, class_mask, x_cam)
 
 
 def _handed(cfg, options, net, params, body, x_cam, t, x_canon, rot, theta, class_mask):
-    """The view given the handedness that ``options`` ask for (``one_handedness``), with
-    the flag of ``one_handedness``; the view as it is, flag 0, when they ask for none."""
-    if not options.one_handedness:
-        return x_cam, x_canon, rot, theta, jnp.zeros((), x_cam.dtype)
+    """The view given the handedness that ``options`` ask for, with the flag of
+    ``mirror_if``: view by view (``one_handedness``), or, without it and with a body
+    reference, the whole model's (every view mirrored when the basis' mean shape is nearer,
+    up to a proper rotation, to the body's mirror image than to the body); the view as it
+    is, flag 0, when they ask for none."""
     reference = None  # the mean shape
     if options.handedness_reference != "mean_shape":
         if body is None:
             raise ValueError(f"handedness_reference={options.handedness_reference!r} needs "
                              "its body: pass lift.options_body(options)")
         reference = jnp.asarray(body)
+    if not options.one_handedness:
+        if reference is None:
+            return x_cam, x_canon, rot, theta, jnp.zeros((), x_cam.dtype)
+        mean = model.mean_shape(net, params, class_mask)
+        return mirror_if(_nearer_mirror(mean, reference, class_mask), x_cam, t, x_canon, rot,
+                         theta)
     if options.handedness_reference == "body":  # the example and the mean shape
         reference = (reference, mean_shape_handed_as(net, params, class_mask, reference))
     return one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference)

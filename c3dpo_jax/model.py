@@ -64,9 +64,9 @@ class Prediction(Mapping):
         (over the view's RMS radius with ``keypoint_scaling="per_view"``).
       dist_sq: (N,) squared distance of each reprojected point to the normalised input,
         unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
-      handedness_flipped: () 1 where the view was given its mirror image
-        (``one_handedness``), else 0: ``shape_canonical`` with its third axis negated
-        there is the model's own canonical shape (``lift.own_handedness``).
+      handedness_flipped: () 1 where the view was given its mirror image (``one_handedness``,
+        or a body's one decision for the whole model), else 0: ``shape_canonical`` with its
+        third axis negated there is the model's own canonical shape (``lift.own_handedness``).
     """
 
     shape_3d: Leaf

@@ -371,7 +371,9 @@ def reconstruct(
         ``handedness_reference`` (and ``handedness_body``) also take one 3D example of the
         points, an (N, 3) array or a file (``bodies.read_body``: .npy, .json, .txt, .csv),
         in any position, orientation and scale; a body given without ``one_handedness``
-        turns it on. Checked against the model in one line (``lift.inference_config``).
+        turns it on, and with ``one_handedness=False`` it gives the whole model one mirror
+        decision (``lift.InferenceConfig``). Checked against the model in one line
+        (``lift.inference_config``).
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions;

@@ -407,8 +407,10 @@ def _maker(**fields):
     (lambda: lift.inference_config(dataclasses.replace(CFG, projection_type="perspective"),
                                    one_handedness=True),
      r"one_handedness=True \(must be False for a perspective model"),
-    (lambda: lift.InferenceConfig(handedness_reference="h36m"),
-     r"handedness_reference='h36m' \(used with one_handedness=True only"),
+    (lambda: lift.inference_config(
+        dataclasses.replace(CFG, n_keypoints=17, projection_type="perspective"),
+        handedness_reference="h36m", one_handedness=False),
+     r"handedness_reference='h36m' \(must be 'mean_shape' for a perspective model"),
     (lambda: lift.inference_config(dataclasses.replace(CFG, n_keypoints=18),
                                    handedness_reference="h36m", one_handedness=True),
      r"handedness_reference='h36m' \(a body of 17 points in its joint order; the model has 18"),
@@ -462,3 +464,68 @@ def test_an_inference_config_goes_through_json_and_reads_a_model_section():
     assert lift.saved_options({"inference": options.to_dict(), **saved}) == options.to_dict()
     with pytest.raises(ValueError, match=r"unknown inference option\(s\) \['turnz'\]"):
         lift.InferenceConfig.from_dict({"turnz": 3})
+
+
+def test_a_body_without_one_handedness_gives_the_whole_model_one_mirror_decision():
+    """``one_handedness=False`` with a body reference: every view is mirrored, as
+    ``one_handedness`` mirrors one, exactly when the model's mean shape is nearer, up to a
+    proper rotation, to the body's mirror image than to the body (scipy's orthogonal
+    Procrustes: the best orthogonal map's determinant), the same decision for every view; the
+    2D reprojection is unchanged; with "mean_shape" nothing changes."""
+    from scipy.linalg import orthogonal_procrustes
+
+    from c3dpo_jax import C3DPOParams, reconstruct
+
+    k = 9
+    cfg = dataclasses.replace(CFG, n_keypoints=k)
+    rng = np.random.default_rng(11)
+    body = rng.normal(size=(k, 3)) * [1.0, 0.8, 0.5]
+    mean = body + 0.3 * rng.normal(size=(k, 3))
+    variables = _input_dependent_variables(cfg)  # coefficients far from 0
+    layer = variables["params"]["shape_layer"]
+    layer["bias"] = jnp.asarray(mean.T.reshape(-1), jnp.float32)
+    # Basis vectors that put the views' own shapes on both sides of the body.
+    layer["kernel"] = 0.1 * jax.random.normal(jax.random.key(6), layer["kernel"].shape)
+    net = model.make_network(cfg)
+    np.testing.assert_allclose(model.mean_shape(net, variables["params"], jnp.ones(k)), mean,
+                               atol=1e-6)
+    kp = jnp.asarray(rng.normal(size=(10, k, 2)), jnp.float32)
+    vis = jnp.ones((10, k), jnp.float32)
+
+    def lifted(options=ONE_PASS):
+        return {n: np.asarray(a) for n, a in _eval(cfg, variables, kp, vis, options).items()}
+
+    off = lifted()
+
+    def nearer_mirror(x, ref):
+        rot, _ = orthogonal_procrustes(x - x.mean(0), ref - ref.mean(0))
+        return bool(np.linalg.det(rot) < 0)
+
+    decisions = []
+    for reference in (body, body * [1.0, 1.0, -1.0]):
+        options = lift.InferenceConfig(handedness_reference="body",
+                                       handedness_body=tuple(map(tuple, reference)))
+        on = lifted(options)
+        mirrored = nearer_mirror(mean, reference)
+        decisions.append(mirrored)
+        assert on["handedness_flipped"].tolist() == [float(mirrored)] * len(kp)
+        f = np.array([1.0, 1.0, -1.0]) if mirrored else np.ones(3)
+        np.testing.assert_allclose(on["shape_canonical"], off["shape_canonical"] * f, atol=1e-5)
+        np.testing.assert_allclose(on["rotation"], f[:, None] * off["rotation"] * f, atol=1e-5)
+        np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
+        np.testing.assert_allclose(on["shape_3d"][..., :2], off["shape_3d"][..., :2], atol=1e-5)
+        depth_on, depth_off = (p["shape_camera"][..., 2].astype(np.float64) for p in (on, off))
+        np.testing.assert_allclose(depth_on - depth_on.mean(1, keepdims=True),
+                                   (depth_off - depth_off.mean(1, keepdims=True)) * f[2],
+                                   atol=1e-4)
+        got = reconstruct(C3DPOParams(variables, cfg), kp, vis, handedness_reference=reference,
+                          one_handedness=False)  # the same through reconstruct
+        np.testing.assert_allclose(got.shape_canonical, off["shape_canonical"] * f, rtol=1e-5,
+                                   atol=1e-5)
+    assert decisions == [False, True]  # the mean shape is the body's side, not its mirror's
+    # The views' own shapes take both sides of the body: the decision above is the model's.
+    assert {nearer_mirror(x, body) for x in off["shape_canonical"].astype(np.float64)} == {
+        False, True}
+    plain = lifted(lift.InferenceConfig(one_handedness=False))
+    for name in ("shape_3d", "shape_canonical", "rotation", "handedness_flipped"):
+        np.testing.assert_array_equal(plain[name], off[name], err_msg=name)

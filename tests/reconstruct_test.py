@@ -193,9 +193,9 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params, monke
 
 
 def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeypatch):
-    """``handedness_reference=`` reaches the model's option (its effect: model_test) and turns
+    """``handedness_reference=`` reaches the model's option (its effect: lift_test) and turns
     ``one_handedness`` on unless it is False; a body of another joint order, an unknown
-    name and a body with one_handedness=False are refused in one line."""
+    name and an unresolved one are refused in one line."""
     cfg17 = dataclasses.replace(CFG, n_keypoints=17)
     p17 = C3DPOParams(model.init_variables(jax.random.key(1), cfg17), cfg17)
     kp, vis = _inputs(3, n=17)
@@ -211,7 +211,9 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
     reconstruct(p17, kp, vis, one_handedness=True, handedness_reference="mean_shape")
     reconstruct(p17, kp, vis, handedness_reference="mean_shape")
     reconstruct(p17, kp, vis, handedness_reference="coco")
-    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape"), (True, "coco")]
+    reconstruct(p17, kp, vis, handedness_reference="h36m", one_handedness=False)
+    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape"), (True, "coco"),
+                    (False, "h36m")]
     kp7, vis7 = _inputs(3)
     for p, k, v, kwargs, message in (
             (params, kp7, vis7, {"handedness_reference": "h36m"},
@@ -222,9 +224,7 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
              r"'body', 'auto', or a body file"),
             (p17, kp, vis, {"handedness_reference": "auto"},
              r"^handedness_reference='auto' \(a training setting, resolved from the training "
-             r"views"),
-            (p17, kp, vis, {"handedness_reference": "h36m", "one_handedness": False},
-             r"^handedness_reference='h36m' \(used with one_handedness=True only\)")):
+             r"views")):
         with pytest.raises(ValueError, match=message):
             reconstruct(p, k, v, **kwargs)
 

@@ -277,7 +277,7 @@ def test_orthographic_only_settings_are_refused_with_perspective(field, value, o
     assert validation.config_problems(c) == []
 
 
-def test_a_body_reference_needs_its_joint_count_and_one_handedness():
+def test_a_body_reference_needs_its_joint_count_and_an_orthographic_model():
     c = default.get_config()
     c.model.n_keypoints = 20
     c.inference.handedness_reference = "h36m"
@@ -287,10 +287,13 @@ def test_a_body_reference_needs_its_joint_count_and_one_handedness():
         "order; the model has 20)"]
     c.model.n_keypoints = 17
     assert validation.config_problems(c) == []
-    c.inference.one_handedness = False
+    c.inference.one_handedness = False  # one mirror decision for the whole model
+    assert validation.config_problems(c) == []
+    c.model.projection_type = "perspective"
     assert validation.config_problems(c) == [
-        "config.inference.handedness_reference='h36m' (used with "
-        "one_handedness=True only)"]
+        "config.inference.handedness_reference='h36m' (must be 'mean_shape' for a "
+        "perspective model: orthographic models only)"]
+    c.model.projection_type = "orthographic"
     c.inference.handedness_reference = "h63m"
     assert validation.config_problems(c) == [
         "config.inference.handedness_reference='h63m' (must be one of 'mean_shape', "
