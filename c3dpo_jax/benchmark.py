@@ -9,13 +9,13 @@ same ``make_train_chunk`` path as training: compile time, train steps/s and
 samples/s (median over calls after warm-up, of ``--chunk_steps`` steps each, 1 by
 default; training's chunks end at the next multiple of ``train.log_every``,
 ``train.ckpt_every`` or the evaluation interval: at most 50 steps with configs/default.py,
-20 with configs/release.py), eval samples/s (compiled ``make_eval_fn``, with the config's
-``model.test_time_turns`` passes per sample and its ``test_time_refine_iters`` refinement
-steps), the analytic dense-layer FLOPs of a step and the fraction of this machine's float32
-matmul rate (``jnp.dot`` on the same shapes, measured in the same run) that the step
-achieves, and peak memory. Numbers are for reporting, never tests. With several devices
-(e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) the train step is data
-parallel over all of them, as in ``train.train_and_evaluate``.
+20 with configs/release.py), eval samples/s (the compiled ``inference.forward_batch``, with
+the config's ``inference.turns`` passes per sample and its ``inference.refine_iters``
+refinement steps), the analytic dense-layer FLOPs of a step and the fraction of this
+machine's float32 matmul rate (``jnp.dot`` on the same shapes, measured in the same run)
+that the step achieves, and peak memory. Numbers are for reporting, never tests. With
+several devices (e.g. ``XLA_FLAGS=--xla_force_host_platform_device_count=2``) the train
+step is data parallel over all of them, as in ``train.train_and_evaluate``.
 """
 
 import json
@@ -32,7 +32,7 @@ import numpy as np
 from absl import flags
 from ml_collections import config_flags
 
-from c3dpo_jax import cli, device_data, inference, model, train
+from c3dpo_jax import cli, device_data, inference, lift, model, train
 from c3dpo_jax.state import create_train_state
 
 
@@ -153,15 +153,18 @@ def _time_train(spec: train.RunSpec, data, steps: int,
             "steps_per_s": 1.0 / step_s, "train_samples_per_s": spec.batch_size / step_s}
 
 
-def _time_eval(model_cfg, variables, data, batch: int, repeats: int) -> dict[str, float]:
-    eval_fn = jax.jit(inference.make_eval_fn(model_cfg))
+def _time_eval(model_cfg, options, variables, data, batch: int, repeats: int
+               ) -> dict[str, float]:
+    eval_fn = jax.jit(inference.forward_batch, static_argnames=("cfg", "options"))
     idx = inference.wrap_indices(0, batch, data["vis"].shape[0])
     inputs = jax.device_put({k: v[idx] for k, v in data.items()})
+    args = (variables, inputs["kp"], inputs["vis"], inputs["class_mask"],
+            inputs.get("intrinsics"), lift.options_body(options))
     t0 = time.perf_counter()
-    compiled = eval_fn.lower(variables, inputs).compile()
+    compiled = eval_fn.lower(*args, cfg=model_cfg, options=options).compile()
     compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(variables, inputs))
-    sec = _median_time(lambda: compiled(variables, inputs), repeats)
+    jax.block_until_ready(compiled(*args))
+    sec = _median_time(lambda: compiled(*args), repeats)
     return {"eval_compile_s": compile_s, "eval_samples_per_s": batch / sec}
 
 
@@ -175,8 +178,12 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
     if config.model.keypoint_rescale == 0:  # "from the data": the random inputs' unit scale
         config = config.copy_and_resolve_references()
         config.model.keypoint_rescale = 1.0
+    if config.inference.handedness_reference == "auto":  # random inputs fit no body
+        config = config.copy_and_resolve_references()
+        config.inference.handedness_reference = "mean_shape"
     spec = train.RunSpec.from_config(config)
     model_cfg, tx = spec.model, spec.optimizer()
+    options = lift.inference_config(model_cfg, spec.inference)
     batch = config.train.batch_size
     host = random_data(model_cfg, max(4 * batch, eval_batch))
     data = jax.device_put(host)
@@ -185,13 +192,12 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
            "jax_version": jax.__version__, "platform": platform.platform(),
            "load_avg_1m": os.getloadavg()[0],
            "matmul_precision": model_cfg.matmul_precision,
-           "test_time_turns": model_cfg.test_time_turns,
-           "test_time_turn_span": model_cfg.test_time_turn_span,
-           "test_time_refine_iters": model_cfg.test_time_refine_iters}
+           "turns": options.turns, "turn_span": options.turn_span,
+           "refine_iters": options.refine_iters}
     res.update(_time_train(spec, data, steps, chunk_steps))
     variables = jax.device_put(create_train_state(jax.random.key(0), model_cfg, tx).variables,
                                jax.devices()[0])
-    res.update(_time_eval(model_cfg, variables, host, eval_batch, repeats))
+    res.update(_time_eval(model_cfg, options, variables, host, eval_batch, repeats))
     layers = dense_layers(model_cfg, batch)
     res["flops_per_step"] = flops(layers)
     res["matmul_gflops"] = matmul_gflops(layers, max(repeats, 10))
@@ -205,8 +211,8 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
 
 def format_table(res: dict) -> str:
     keys = ["config", "device", "n_devices", "batch_size", "chunk_steps", "compile_s",
-            "steps_per_s", "train_samples_per_s", "test_time_turns", "test_time_turn_span",
-            "test_time_refine_iters", "eval_samples_per_s",
+            "steps_per_s", "train_samples_per_s", "turns", "turn_span", "refine_iters",
+            "eval_samples_per_s",
             "flops_per_step",
             "matmul_gflops", "achieved_gflops", "matmul_fraction", "matmul_limit_samples_per_s",
             "peak_rss_mb", "load_avg_1m", "load_avg_1m_end"]

@@ -37,6 +37,8 @@ import orbax.checkpoint as ocp
 from absl import logging
 from etils import epath
 
+from c3dpo_jax.model import MOVED_TO_INFERENCE
+
 CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoints"
 
@@ -331,11 +333,12 @@ def save_config(workdir: str, config: dict[str, Any]) -> None:
     write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
 
 
-# What makes a checkpoint another run's: the network (model, but for its inference-only
-# test_time_* options), the optimiser and its state (optim), the objective (loss), the
-# seed, the batches and the epoch length that the schedule counts in, and what the run
-# learns from. The evaluation protocol, the test file, the inference options and the step
-# counts may change between a run and its resumption.
+# What makes a checkpoint another run's: the network (model; a saved model section's
+# inference options, ``model.MOVED_TO_INFERENCE``, are not the network's), the optimiser and
+# its state (optim), the objective (loss), the seed, the batches and the epoch length that
+# the schedule counts in, and what the run learns from. The evaluation protocol, the test
+# file, the inference options (``inference``) and the step counts may change between a run
+# and its resumption.
 _RUN_DATA_FIELDS = ("train_path", "source", "min_visible", "drop_invalid", "class_balanced")
 _RUN_TRAIN_FIELDS = ("batch_size", "samples_per_epoch")
 
@@ -343,7 +346,7 @@ _RUN_TRAIN_FIELDS = ("batch_size", "samples_per_epoch")
 def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
     data, train = config.get("data", {}), config.get("train", {})
     ident = {"model": {k: v for k, v in config.get("model", {}).items()
-                       if not k.startswith("test_time_")},
+                       if k not in MOVED_TO_INFERENCE},
              "optim": config.get("optim", {}),
              "train": {k: train[k] for k in _RUN_TRAIN_FIELDS if k in train},
              "data": {k: data[k] for k in _RUN_DATA_FIELDS if k in data}}

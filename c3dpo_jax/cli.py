@@ -213,6 +213,8 @@ def _override_problem(argv: list[str]) -> str | None:
 
     from ml_collections import ConfigDict
 
+    from c3dpo_jax.model import MOVED_TO_INFERENCE
+
     spec = next((a.partition("=")[2] for a in argv if a.startswith(("--config=", "-config="))),
                 None)
     if not spec:
@@ -228,6 +230,9 @@ def _override_problem(argv: list[str]) -> str | None:
             if not isinstance(node, ConfigDict):
                 return f"{flag}: {where} is a value, not a section with fields"
             if key not in node:
+                if depth == 1 and path[0] == "model" and key in MOVED_TO_INFERENCE:
+                    return (f"{flag}: config.model.{key} is now "
+                            f"config.inference.{MOVED_TO_INFERENCE[key]}")
                 close = difflib.get_close_matches(key, list(node), n=1)
                 sections = sorted(k for k in node if isinstance(node[k], ConfigDict))
                 what = "section" if depth < len(path) - 1 else "field"

@@ -16,6 +16,7 @@ import numpy as np
 from absl import logging
 
 from c3dpo_jax import model
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.model import ModelConfig
 from c3dpo_jax.reconstruct import C3DPOParams
 
@@ -25,9 +26,10 @@ _SAME = (
     "keypoint_norm_type", "root_joint", "projection_type", "perspective_depth_threshold",
     "argmin_translation", "camera_translation", "camera_xy_translation", "depth_offset",
     "camera_scale", "z_augment", "z_augment_rot_angle", "z_equivariance",
-    "z_equivariance_rot_angle", "independent_phi_for_aug", "replace_keypoints_with_input",
-    "weight_init_std",
+    "z_equivariance_rot_angle", "independent_phi_for_aug", "weight_init_std",
 )
+# Release constructor arguments that are inference options here (``lift.InferenceConfig``).
+_INFERENCE = ("replace_keypoints_with_input",)
 _CANON = {
     "use": "canonicalization", "n_layers": "canonicalization_n_layers",
     "n_fully_connected": "canonicalization_n_fully_connected",
@@ -50,14 +52,23 @@ def model_config_from_official(config: dict[str, Any]) -> ModelConfig:
                     fields[_CANON[sub]] = sub_value
                 else:
                     unknown.append(f"canonicalization.{sub}")
+        elif key in _INFERENCE:
+            continue  # inference_from_official's
         elif key in _IGNORED:
             logging.info("ignoring the release option %r (not used at inference)", key)
         else:
             unknown.append(key)
     if unknown:
         raise ValueError(f"unknown release option(s) {sorted(unknown)}; known: "
-                         f"{sorted(_SAME + _IGNORED)} and canonicalization.{sorted(_CANON)}")
+                         f"{sorted(_SAME + _INFERENCE + _IGNORED)} and "
+                         f"canonicalization.{sorted(_CANON)}")
     return ModelConfig(**fields)
+
+
+def inference_from_official(config: dict[str, Any]) -> InferenceConfig:
+    """The inference options of the release's ``C3DPO(**kwargs)`` dict (the others are the
+    release's inference, the defaults)."""
+    return InferenceConfig(**{k: config[k] for k in _INFERENCE if k in config})
 
 
 def _dense(sd: dict, name: str) -> dict[str, np.ndarray]:
@@ -125,7 +136,8 @@ def from_official(state_dict: dict[str, np.ndarray], config: dict[str, Any]) -> 
         raise ValueError("converted parameters do not match the model's layout: "
                          f"{jax.tree_util.tree_structure(got)} vs "
                          f"{jax.tree_util.tree_structure(want)}")
-    return C3DPOParams(variables=jax.tree.map(np.asarray, variables), config=cfg)
+    return C3DPOParams(variables=jax.tree.map(np.asarray, variables), config=cfg,
+                       inference=inference_from_official(config))
 
 
 def load_official_pth(path: str, config: dict[str, Any]) -> C3DPOParams:

@@ -2,12 +2,15 @@
 
 Glossary: B batch, N keypoints, M samples of a split.
 
-Every consumer of eval-mode outputs (the training loop's evaluation, ``--mode=eval``,
-``reconstruct``, the benchmark and the experiments) runs ``forward_batch``: the
-per-example ``model.forward_eval`` vmapped over the batch (running BatchNorm
-statistics, so examples do not interact). Batches are padded to a fixed size by
-repeating valid samples (``wrap_indices``), so one compiled function serves every
-batch of that size and the padding rows are real inputs, never NaN-prone zeros.
+One path from a model to 3D: the per-example ``lift.forward_eval`` -> ``forward_batch``
+(vmapped over the batch; running BatchNorm statistics, so examples do not interact) ->
+``reconstruct.reconstruct`` (a user's keypoints, checked on the host). A split is
+evaluated through ``predict_split``, which runs ``forward_batch`` over the whole split and
+keeps the outputs ``reconstruct`` does not return (``handedness_flipped``, the normalised
+frame's); the training loop, ``--mode=eval``, the benchmark and the experiments use them.
+Batches are padded to a fixed size by repeating valid samples (``wrap_indices``), so one
+compiled function serves every batch of that size and the padding rows are real inputs,
+never NaN-prone zeros.
 """
 
 from functools import partial
@@ -15,29 +18,25 @@ from functools import partial
 import jax
 import numpy as np
 
-from c3dpo_jax import baselines, evaluation, model
+from c3dpo_jax import baselines, evaluation, lift, model
 from c3dpo_jax.data.dataset import KeypointData
+from c3dpo_jax.lift import InferenceConfig
 
 
-def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics,
-                  cfg: model.ModelConfig) -> model.Prediction:
-    """``model.forward_eval`` over a batch: ``kp (B, N, 2)``, ``vis`` and ``class_mask``
-    ``(B, N)``, ``intrinsics (B, 3, 3)`` or None; returns its ``Prediction`` with a
-    leading B on every field."""
-    fn = partial(model.forward_eval, variables, cfg=cfg)
-    return jax.vmap(fn, in_axes=(0, 0, 0, None if intrinsics is None else 0))(
-        kp, vis, class_mask, intrinsics
+def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics, body,
+                  cfg: model.ModelConfig, options: InferenceConfig) -> model.Prediction:
+    """``lift.forward_eval`` over a batch: ``kp (B, N, 2)``, ``vis`` and ``class_mask``
+    ``(B, N)``, ``intrinsics (B, 3, 3)`` or None, ``body (N, 3)`` or None (one for the
+    batch, ``lift.options_body``); returns its ``Prediction`` with a leading B on every
+    field."""
+    fn = partial(lift.forward_eval, variables, cfg=cfg, options=options)
+    return jax.vmap(fn, in_axes=(0, 0, 0, None if intrinsics is None else 0, None))(
+        kp, vis, class_mask, intrinsics, body
     )
 
 
-def make_eval_fn(model_cfg: model.ModelConfig):
-    """``eval_fn(variables, batch)``: ``forward_batch`` on a dict of ``model_inputs``."""
-
-    def eval_fn(variables, batch):
-        return forward_batch(variables, batch["kp"], batch["vis"], batch["class_mask"],
-                             batch.get("intrinsics"), model_cfg)
-
-    return eval_fn
+# ``forward_batch`` compiled once per model, options and batch shape (the configs are static).
+_forward_batch = jax.jit(forward_batch, static_argnames=("cfg", "options"))
 
 
 def wrap_indices(start: int, size: int, m: int) -> np.ndarray:
@@ -53,41 +52,42 @@ def bucket_size(b: int) -> int:
 
 
 def predict_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
-                  batch_size: int = 1024, eval_fn=None) -> dict[str, np.ndarray]:
+                  options: InferenceConfig, batch_size: int = 1024) -> dict[str, np.ndarray]:
     """Eval-mode outputs for a whole split, a dict ``{field of model.Prediction: (M, ...)}``
     of numpy arrays, computed in compiled batches of ``min(batch_size, M)`` (the last one
-    padded by wrapping around).
-
-    ``eval_fn``: a jitted ``make_eval_fn(model_cfg)`` to reuse (compiled once per loop)."""
-    eval_fn = eval_fn or jax.jit(make_eval_fn(model_cfg))
+    padded by wrapping around)."""
     inputs = data.model_inputs()
+    body = lift.options_body(options)
     m = len(data)
     batch_size = min(batch_size, m)
     outputs = []
     for start in range(0, m, batch_size):
         idx = wrap_indices(start, batch_size, m)
-        out = eval_fn(variables, {k: v[idx] for k, v in inputs.items()})
+        out = _forward_batch(variables, inputs["kp"][idx], inputs["vis"][idx],
+                             inputs["class_mask"][idx],
+                             None if "intrinsics" not in inputs else inputs["intrinsics"][idx],
+                             body, cfg=model_cfg, options=options)
         outputs.append(jax.device_get(out))
     return {k: np.concatenate([o[k] for o in outputs])[:m] for k in outputs[0]}
 
 
-def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig, protocol: str,
-                   eval_fn=None, batch_size: int = 1024) -> dict:
+def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
+                   options: InferenceConfig, protocol: str, batch_size: int = 1024) -> dict:
     """Test metrics: MPJPE/stress when the split has 3D ground truth, and always the
     2D reprojection error of the visible points (the only score for 2D-only data) and,
     for single-class data, ``mirrored`` (``evaluation.mirrored_fraction``: how mixed the
     handedness of the canonical shapes is, also without 3D ground truth; the model's own
-    shapes, before ``test_time_one_handedness`` gives every view one handedness, so that it
-    says what training learnt)."""
-    pred = predict_split(variables, data, model_cfg, batch_size, eval_fn)
+    shapes, before ``one_handedness`` gives every view one handedness, so that it says what
+    training learnt)."""
+    pred = predict_split(variables, data, model_cfg, options, batch_size)
     # kp_reprojected is in the input's units (pixels for perspective models too).
     reproj = evaluation.reprojection_error(pred["kp_reprojected"], data)
     out = {"n_samples": len(data), "reprojection": reproj}
     if data.class_mask is None:  # one object class: one mean shape to compare handedness
         out["mirrored"] = evaluation.mirrored_fraction(
-            model.own_handedness(pred["shape_canonical"], pred["handedness_flipped"]))
+            lift.own_handedness(pred["shape_canonical"], pred["handedness_flipped"]))
     if data.kp3d is not None and protocol != "none":
-        out.update(evaluation.evaluate(pred["shape_image_coord"], data, protocol))
+        out.update(evaluation.evaluate(pred["shape_3d"], data, protocol))
     return out
 
 

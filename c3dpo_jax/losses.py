@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from c3dpo_jax import geometry, model, so3
+from c3dpo_jax import geometry, lift, model, so3
 
 __all__ = ["LossConfig", "canonicalisation", "canonicalisation_per_sample", "deformation",
            "draw_rotations", "huber", "make_loss_fn", "reprojection", "supervised"]
@@ -83,10 +83,10 @@ def multiview(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"], v
 def handedness(x_canon: Float[Array, "B N 3"], mean_shape: Float[Array, "B N 3"],
                class_mask: Float[Array, "B N"], margin: float = 0.0) -> Float[Array, ""]:
     """Mean over examples of how far each canonical shape falls short of ``margin`` in
-    ``model.handedness_evidence`` against the mean shape (held fixed): zero for a shape that
+    ``lift.handedness_evidence`` against the mean shape (held fixed): zero for a shape that
     a proper rotation maps onto the mean shape better than a reflection does, by the margin;
     positive for one nearer the mean shape's mirror image."""
-    evidence = jax.vmap(partial(model.handedness_evidence, floor=1e-8))(
+    evidence = jax.vmap(partial(lift.handedness_evidence, floor=1e-8))(
         x_canon, jax.lax.stop_gradient(mean_shape), class_mask)
     return jnp.mean(jax.nn.relu(margin - evidence))
 
@@ -257,7 +257,7 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
     ``batch`` holds ``kp`` (B, N, 2), ``vis`` (B, N) and ``class_mask`` (B, N) (ones for
     single-class data), as ``KeypointData.model_inputs()`` gives them; ``intrinsics``
     (B, 3, 3) for perspective models, and ``kp3d`` (B, N, 3) when ``loss_cfg.w_supervised``
-    is set. ``model_cfg.keypoint_rescale`` must be resolved (``train.resolve_input_scale``).
+    is set. ``model_cfg.keypoint_rescale`` must be resolved (``resolve.resolve_input_scale``).
     """
 
     def loss_fn(params, batch_stats, batch, key, step=0):

@@ -123,7 +123,8 @@ def main(argv):
           f"'{config.data.protocol}'), step {results['final']['step']}:")
     print(evaluation.format_table(rows))
     if "inference" in results["final"]:
-        options = ", ".join(f"model.{k}={v}" for k, v in results["final"]["inference"].items())
+        options = ", ".join(f"inference.{k}={v}"
+                            for k, v in results["final"]["inference"].items())
         print(f"{_method(config)} scored with inference options other than the training's: "
               f"{options}")
     if "mpjpe" in results["final"]:

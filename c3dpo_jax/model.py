@@ -1,30 +1,25 @@
-"""C3DPO's pure forward passes, for ONE example, plus the model's static settings.
+"""C3DPO's network and its training forward pass, for ONE example, plus the model's
+static settings (``ModelConfig``) and the geometry both forward passes share.
 
 Glossary: N keypoints, D shape-basis size, S canonicalisation samples. Points are
 rows: ``kp (N, 2)``, ``X (N, 3)``; rotations act as ``X @ R.T`` (see ``so3``).
 
-``forward_train`` must run under ``jax.vmap(..., axis_name="batch")`` (BatchNorm
-takes its statistics over that axis); ``forward_eval`` uses running statistics and
-runs anywhere. Paper equations: reprojection (eq. 4, l1), canonicalisation (eq. 5,
-l2), in-plane equivariance (eq. 6, l3). The model is geometry: given an example and
-its random rotations (``TrainRotations``) it returns squared distances, and ``losses``
-draws the rotations and turns the distances into the objective (penalty, reductions,
-weights, with their options in ``losses.LossConfig``).
+``forward_train`` runs under ``jax.vmap(..., axis_name="batch")`` (BatchNorm takes its
+statistics over that axis): given an example and its random rotations (``TrainRotations``)
+it returns squared distances of eq. 4 (reprojection), 5 (canonicalisation) and 6 (in-plane
+equivariance), which ``losses`` turns into the objective. The eval pass, with the options
+of ``lift.InferenceConfig``, is ``lift.forward_eval``.
 """
 
 import contextlib
 import dataclasses
 import functools
-import json
-import os
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg
-import numpy as np
 from jaxtyping import Array, Float
 
 from c3dpo_jax import geometry, so3
@@ -39,48 +34,42 @@ Leaf = Any
 
 @flax.struct.dataclass
 class Prediction(Mapping):
-    """``forward_eval``'s outputs for one example (under ``vmap``, each with a leading B).
-
-    A frozen dataclass and a pytree (``vmap``, ``jit`` and ``device_get`` keep the type),
-    and a read-only mapping from field name to array, so ``pred.alpha``,
-    ``pred["alpha"]``, ``pred.items()`` and ``dict(pred)`` all work (the mapping view
-    serves code that reads the outputs as a dict). "Normalised" is the network's frame: the input
-    centred (``kp_mean``) and times ``keypoint_rescale`` (and over the view's RMS radius
-    with ``keypoint_scaling="per_view"``), after calibration with K for perspective models.
+    """``lift.forward_eval``'s outputs for one example (batched, each with a leading B): a
+    frozen dataclass, a pytree and a read-only mapping (``pred.alpha``, ``pred["alpha"]``,
+    ``dict(pred)``). "Normalised" is the network's frame: the input centred (``kp_mean``)
+    and times ``kp_scale``, after calibration with K for perspective models. The options
+    named below are ``lift.InferenceConfig``'s.
 
     Attributes:
-      shape_image_coord: (N, 3) the 3D output in the input's coordinates: xy the input
-        where visible (``replace_keypoints_with_input``) else the reprojection, depth
-        divided by the normalisation's factor (``keypoint_rescale``; calibrated units for
-        perspective models).
-      shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised; with
-        ``test_time_turns`` > 1 its depth (and shape_image_coord's) is the median over
-        the turned copies kept, while X, R, theta and alpha are the unturned view's.
+      shape_3d: (N, 3) the 3D output in the input's coordinates (calibrated for perspective
+        models): xy the input where visible (``replace_keypoints_with_input``) else the
+        reprojection, depth divided by ``kp_scale``.
+      shape_camera: (N, 3) ``scale * X @ R.T + translation``, normalised; with ``turns``
+        > 1 its depth (and shape_3d's) is the median over the turned copies kept, while X,
+        R, theta and alpha are the unturned view's.
       shape_canonical: (N, 3) the canonical shape X (points outside the class are 0).
       rotation: (3, 3) the camera rotation R = exp_map(theta).
       theta: (3,) R's axis-angle vector.
-      alpha: (D,) shape-basis coefficients (with ``test_time_refine_iters`` > 0, theta
-        and alpha are Phi's refined; see ``refine_camera_and_shape``). With
-        ``test_time_one_handedness``, a view given its mirror image has X the mirror of
-        the basis' shape for alpha, and R, theta and the depth mirrored to match
-        (``one_handedness``).
+      alpha: (D,) shape-basis coefficients (with ``refine_iters`` > 0, theta and alpha
+        are Phi's refined; see ``lift.refine_camera_and_shape``). With ``one_handedness``,
+        a view given its mirror image has X the mirror of the basis' shape for alpha, and
+        R, theta and the depth mirrored to match (``lift.one_handedness``).
       translation: (3,) camera translation (zeros + ``depth_offset`` unless predicted).
       scale: () camera scale (1 unless ``camera_scale``).
       kp_reprojected: (N, 2) shape_camera projected back to input coordinates (pixels
         for perspective models).
       kp_norm: (N, 2) the network's normalised input.
       kp_mean: (2,) the centre removed from the input (calibrated for perspective).
-      kp_scale: () the factor the centred input was multiplied by (``keypoint_rescale``,
-        over the view's RMS radius with ``keypoint_scaling="per_view"``): the normalised
-        frame's units are the input's times it.
+      kp_scale: () the factor the centred input was multiplied by: ``keypoint_rescale``
+        (over the view's RMS radius with ``keypoint_scaling="per_view"``).
       dist_sq: (N,) squared distance of each reprojected point to the normalised input,
         unmasked (``losses.LossConfig.penalty`` turns it into the reprojection term).
-      handedness_flipped: () 1 where ``test_time_one_handedness`` gave the view its mirror
-        image, else 0: ``shape_canonical`` with its third axis negated there is the model's
-        own canonical shape (``own_handedness``).
+      handedness_flipped: () 1 where the view was given its mirror image (``one_handedness``,
+        or a body's one decision for the whole model), else 0: ``shape_canonical`` with its
+        third axis negated there is the model's own canonical shape (``lift.own_handedness``).
     """
 
-    shape_image_coord: Leaf
+    shape_3d: Leaf
     shape_camera: Leaf
     shape_canonical: Leaf
     rotation: Leaf
@@ -110,15 +99,6 @@ class Prediction(Mapping):
 _PREDICTION_FIELDS = tuple(f.name for f in dataclasses.fields(Prediction))
 
 
-def own_handedness(shapes, handedness_flipped):
-    """Shapes ``(..., N, 3)`` of a ``Prediction`` with the mirroring of
-    ``test_time_one_handedness`` undone (the third axis negated where ``handedness_flipped``,
-    shape ``(...)``): the model's own ``shape_canonical``, and its own camera-frame or
-    image-coordinate depths up to their offset; numpy or jax arrays alike."""
-    flipped = handedness_flipped[..., None, None] > 0
-    return shapes * (1.0 - 2.0 * (flipped & (np.arange(3) == 2)))
-
-
 class TrainRotations(NamedTuple):
     """The random rotations of one training example (drawn by ``losses.draw_rotations``).
 
@@ -138,7 +118,9 @@ class TrainRotations(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Every option of the release's ``C3DPO`` model (names as in the release)."""
+    """What the network is and how it trains: every option of the release's ``C3DPO``
+    model (names as in the release) but the ones that act at inference only, which are
+    ``lift.InferenceConfig``'s."""
 
     n_keypoints: int = 17
     shape_basis_size: int = 10
@@ -147,14 +129,11 @@ class ModelConfig:
     keypoint_norm_type: str = "to_mean"  # "to_mean" | "to_root"
     root_joint: int = 0
     keypoint_rescale: float = 1.0
-    # How the centred input is scaled (``KEYPOINT_SCALINGS``): "global", the release's, by
-    # ``keypoint_rescale`` alone; "per_view" (not in the release), each view also divided by
-    # its own RMS radius about the visible points' mean and its reconstruction multiplied by
-    # it, so that Phi sees every view at one size and a shape seen at any size gets the same
-    # factorisation (people at different distances from the camera; the training loss then
-    # weighs every view alike; orthographic models only); "auto" (a training config's value),
-    # "per_view" when the training views' sizes differ widely, else "global"
-    # (``train.resolve_keypoint_scaling``).
+    # How the centred input is scaled: "global" (the release's) by ``keypoint_rescale``
+    # alone; "per_view" (not in the release) each view also divided by its own RMS radius and
+    # its reconstruction multiplied by it, so that Phi sees every view at one size (people at
+    # different distances; orthographic models only); "auto" (a training config's value),
+    # resolved from the training views by ``resolve.resolve_keypoint_scaling``.
     keypoint_scaling: str = "global"
     projection_type: str = "orthographic"  # "orthographic" | "perspective"
     perspective_depth_threshold: float = 0.1
@@ -172,128 +151,43 @@ class ModelConfig:
     canonicalization_n_layers: int = 6
     canonicalization_n_fully_connected: int = 1024
     n_rand_samples: int = 4
-    # Not in the release (0): this many more of Psi's samples are reflections (a uniform
-    # rotation times diag(1, 1, -1)), which Psi must undo as well: canonicalisation over
-    # O(3) instead of SO(3), so that the canonical shapes cannot hold both a shape and its
-    # mirror image (``losses.LossConfig``, "reflections").
+    # Not in the release (0): this many more of Psi's samples are reflections (a rotation
+    # times diag(1, 1, -1)) for Psi to undo: canonicalisation over O(3), not SO(3).
     n_rand_reflections: int = 0
     canonicalization_rot_angle: float = 3.141592653589793
-    replace_keypoints_with_input: bool = True
     weight_init_std: float = 0.01
-    # Not in the release (which is 1): at inference, each view is also turned in-plane
-    # about its centre and the depth of every point is the median over copies (an
-    # orthographic depth does not change under an in-plane turn); orthographic models only
-    # (see ``forward_eval``). ``test_time_turn_span``: "augmentation", the copies spread
-    # evenly over +-z_augment_rot_angle (the training augmentation's range; odd turns,
-    # models trained with z_augment), all of them kept; "circle", spread evenly round the
-    # full circle, only the copies whose 2D reprojection error is within
-    # ``TURN_KEEP_RATIO`` of the lowest kept (a copy the network is lost on fits its own
-    # turned input badly); "circle_and_range", round the circle, the copies "circle" keeps
-    # and every copy within the augmentation's range (models trained with z_augment).
-    test_time_turns: int = 1
-    test_time_turn_span: str = "augmentation"  # "augmentation" | "circle" | "circle_and_range"
-    # Not in the release (which is 0): at inference, Phi's camera and coefficients are the
-    # start of ``test_time_refine_iters`` Levenberg-Marquardt steps on the view's mean
-    # squared 2D reprojection distance plus ``test_time_refine_prior`` times the mean
-    # squared distance of the canonical shape's points to Phi's (orthographic models only;
-    # every turned copy is refined; see ``refine_camera_and_shape``).
-    test_time_refine_iters: int = 0
-    test_time_refine_prior: float = 0.3
-    # Not in the release (False): at inference, a view whose canonical shape is, up to a
-    # rotation, nearer to the mirror image of the basis' mean shape than to the mean shape
-    # is given its mirror image, which fits the 2D points equally (orthographic models only;
-    # see ``one_handedness``): every view then has the mean shape's handedness.
-    test_time_one_handedness: bool = False
-    # What the views' handedness is taken from with ``test_time_one_handedness``:
-    # "mean_shape" (the basis' mean shape, whose handedness the 2D views cannot tell from
-    # its mirror image's) or a body of a known joint order (``HANDEDNESS_REFERENCES``):
-    # each view is then given the handedness of that body, so that a model whose mean shape
-    # came out mirrored still gives the body's own. "auto" (a training config's value,
-    # resolved from the training views by ``train.resolve_handedness``): a body whose
-    # projections fit the training views, with ``test_time_one_handedness`` on, else the
-    # mean shape. "body": the body in ``test_time_handedness_body`` (a training config may
-    # name a file instead, ``BODY_FILE_SUFFIXES``, which ``train.resolve_handedness`` reads).
-    test_time_handedness_reference: str = "mean_shape"
-    # With test_time_handedness_reference="body": one 3D example of the points, N rows of
-    # (x, y, z) in the model's order, in any position, orientation and scale (a frame of
-    # motion capture, a rig's rest pose): each view takes the handedness that two references
-    # favour together, the example and the basis' mean shape given the example's handedness
-    # (``mean_shape_handed_as``, ``handedness_evidence``, ``one_handedness``).
-    test_time_handedness_body: tuple = ()
-    # Matmul precision of the forward passes (params stay float32): "default" (the
-    # backend's choice: float32 on CPU, may be tf32 on GPU), "float32" / "highest",
-    # "tensorfloat32" / "high", "bfloat16"; see ``jax.default_matmul_precision``.
-    # "bfloat16" also casts the trunks' dense operands to bfloat16 explicitly (float32
-    # accumulation), which XLA's CPU backend honours where the precision flag is ignored.
+    # Matmul precision of the forward passes (``jax.default_matmul_precision``; params stay
+    # float32): "default", "float32" / "highest", "tensorfloat32" / "high", "bfloat16" (which
+    # also casts the trunks' dense operands to bfloat16, float32 accumulation, also on CPU).
     matmul_precision: str = "default"
 
     def __post_init__(self):
-        """The options that would otherwise change inference silently (an even number of
-        turns, an unknown span or projection, a negative prior), checked however the config
-        was made: ``validation.check_config`` says the same of a run's config, field by
-        field; this covers ``ModelConfig(...)``, ``dataclasses.replace`` and a hand-edited
-        config.json read by ``load``."""
+        """Unknown projections, scalings and centrings, however the config was made."""
         problems = []
-        body = self.test_time_handedness_body
-        try:  # rows of floats, hashable (a saved config holds lists)
-            object.__setattr__(self, "test_time_handedness_body",
-                               tuple(tuple(float(v) for v in row) for row in body))
-        except (TypeError, ValueError):
-            problems.append(f"test_time_handedness_body={body!r} (rows of three numbers)")
         for name, known in (("projection_type", ("orthographic", "perspective")),
-                            ("keypoint_norm_type", ("to_mean", "to_root")),
-                            ("test_time_turn_span", TURN_SPANS)):
+                            ("keypoint_norm_type", ("to_mean", "to_root"))):
             if getattr(self, name) not in known:
                 problems.append(f"{name}={getattr(self, name)!r} (known: {', '.join(known)})")
-        turns, iters, prior = (self.test_time_turns, self.test_time_refine_iters,
-                               self.test_time_refine_prior)
-        if not (isinstance(turns, int | np.integer) and turns >= 1):
-            problems.append(f"test_time_turns={turns!r} (must be an integer >= 1)")
-        elif self.test_time_turn_span in TURN_SPANS and self.projection_type in (
-                "orthographic", "perspective"):
-            why = turns_problem(int(turns), self.projection_type, self.z_augment,
-                                self.z_augment_rot_angle, self.test_time_turn_span)
-            if why:
-                problems.append(f"test_time_turns={turns} ({why})")
-        if not (isinstance(iters, int | np.integer) and iters >= 0):
-            problems.append(f"test_time_refine_iters={iters!r} (must be an integer >= 0)")
-        elif why := refine_problem(int(iters), self.projection_type):
-            problems.append(f"test_time_refine_iters={iters} ({why})")
-        if not prior >= 0:  # NaN too
-            problems.append(f"test_time_refine_prior={prior!r} (must be >= 0)")
         if self.keypoint_scaling not in (*KEYPOINT_SCALINGS, "auto"):
             problems.append(f"keypoint_scaling={self.keypoint_scaling!r} (known: "
                             f"{', '.join(KEYPOINT_SCALINGS)}, auto)")
         elif why := keypoint_scaling_problem(self.keypoint_scaling, self.projection_type):
             problems.append(f"keypoint_scaling={self.keypoint_scaling!r} ({why})")
-        if handedness_problem(bool(self.test_time_one_handedness), self.projection_type):
-            problems.append("test_time_one_handedness=True ("
-                            + handedness_problem(True, self.projection_type) + ")")
-        if why := reference_problem(self.test_time_handedness_reference, self.n_keypoints,
-                                    bool(self.test_time_one_handedness),
-                                    self.test_time_handedness_body):
-            problems.append(f"test_time_handedness_reference="
-                            f"{self.test_time_handedness_reference!r} ({why})")
-        elif self.test_time_handedness_body and self.test_time_handedness_reference != "body":
-            problems.append("test_time_handedness_body is given but test_time_handedness_"
-                            f"reference is {self.test_time_handedness_reference!r}, not 'body'")
         if problems:
             raise ValueError("model config: " + "; ".join(problems))
 
     @classmethod
     def from_dict(cls, d) -> "ModelConfig":
         """From a dict or ConfigDict; unknown keys are an error, not silently dropped.
-        The loss options that older runs saved in their model section (now
-        ``losses.LossConfig``'s) are skipped: they change nothing in the model."""
-        d = {k: v for k, v in dict(d).items() if k not in MOVED_TO_LOSS}
+        What a saved model section may hold that is another config's here is skipped: the
+        release's loss options (``MOVED_TO_LOSS``) and the inference options
+        (``MOVED_TO_INFERENCE``, which ``lift.saved_options`` reads)."""
+        d = {k: v for k, v in dict(d).items()
+             if k not in MOVED_TO_LOSS and k not in MOVED_TO_INFERENCE}
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"unknown model option(s) {unknown}; known: {sorted(names)}")
-        body = d.get("test_time_handedness_body")
-        if isinstance(body, list | np.ndarray):  # JSON's lists
-            d["test_time_handedness_body"] = tuple(tuple(row) if isinstance(
-                row, list | np.ndarray) else row for row in body)
         return cls(**d)
 
     def to_dict(self) -> dict[str, Any]:
@@ -302,6 +196,13 @@ class ModelConfig:
 
 # The release's model options that are loss options here (``losses.LossConfig``).
 MOVED_TO_LOSS = ("huber_scaling", "reprojection_normalization", "squared_reprojection_loss")
+# Model options a saved config.json may hold that are ``lift.InferenceConfig``'s fields,
+# each with that field's name.
+MOVED_TO_INFERENCE = {
+    **{f"test_time_{name}": name for name in (
+        "refine_iters", "refine_prior", "turns", "turn_span", "one_handedness",
+        "handedness_reference", "handedness_body")},
+    "replace_keypoints_with_input": "replace_keypoints_with_input"}
 
 _PRECISIONS = ("default", "bfloat16", "tensorfloat32", "float32", "high", "highest",
                "bfloat16_3x")
@@ -317,10 +218,9 @@ def _precision(cfg: ModelConfig):
 
 
 def single_precision(fn):
-    """Runs ``fn`` with JAX's 64-bit mode off: the library computes in float32 (parameters,
-    optimiser state, BatchNorm statistics), also in a notebook that has turned
-    ``jax_enable_x64`` on, where Python floats would otherwise enter as float64. For the
-    host entry points (``reconstruct``, ``train.train_and_evaluate``, ...)."""
+    """Runs ``fn`` with JAX's 64-bit mode off: the library computes in float32, also in a
+    notebook that has turned ``jax_enable_x64`` on (where Python floats would enter as
+    float64). For the host entry points (``reconstruct``, ``train.train_and_evaluate``)."""
 
     @functools.wraps(fn)
     def wrapped(*args, **kwargs):
@@ -330,12 +230,12 @@ def single_precision(fn):
     return wrapped
 
 
-def _under_precision(fn):
-    """Runs ``fn(..., cfg)`` (``cfg`` its last argument) under ``_precision(cfg)``."""
+def under_precision(fn):
+    """Runs ``fn`` under ``_precision(cfg)``, ``cfg`` its keyword or positional config."""
 
     @functools.wraps(fn)
     def wrapped(*args, **kwargs):
-        cfg = kwargs["cfg"] if "cfg" in kwargs else args[-1]
+        cfg = kwargs.get("cfg") or next(a for a in args if isinstance(a, ModelConfig))
         with _precision(cfg):
             return fn(*args, **kwargs)
 
@@ -362,8 +262,7 @@ def make_network(cfg: ModelConfig) -> C3DPONet:
 
 def init_variables(key: jax.Array, cfg: ModelConfig) -> Variables:
     """Random parameters and BatchNorm statistics (eval-mode init, no batch needed)."""
-    net = make_network(cfg)
-    n = cfg.n_keypoints
+    net, n = make_network(cfg), cfg.n_keypoints
     return dict(net.init(key, jnp.zeros((n, 2)), jnp.ones((n,)), False))
 
 
@@ -373,8 +272,8 @@ def variables_shape(cfg: ModelConfig) -> Variables:
     return jax.eval_shape(lambda k: init_variables(k, cfg), jax.random.key(0))
 
 
-def _camera(cfg: ModelConfig, phi_out, x_canon):
-    """Camera-frame shape ``s R X + T`` and the rotation."""
+def camera_frame(cfg: ModelConfig, phi_out, x_canon):
+    """Camera-frame shape ``s R X`` (N, 3), the translation ``T`` (3,) and the rotation."""
     rot = so3.exp_map(phi_out["theta"])
     t = phi_out["translation"]
     if cfg.camera_xy_translation:
@@ -384,27 +283,24 @@ def _camera(cfg: ModelConfig, phi_out, x_canon):
 
 
 KEYPOINT_SCALINGS = ("global", "per_view")
-# The least RMS radius "per_view" scaling divides a view by (in the normalised units, where
-# the training views' median is about 1): a view whose visible points nearly coincide is
-# scaled up at most this much instead of dividing by 0.
+# The least RMS radius "per_view" divides a view by (normalised units, the training views'
+# median about 1): a view whose points nearly coincide is not divided by 0.
 MIN_VIEW_RADIUS = 1e-3
 
 
-def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
+def normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
     """``(kp_cal, kp_norm, centre, scale)``: calibrated keypoints (perspective), the
-    network's centred, rescaled input, the centre that was removed and the factor the
-    centred points were multiplied by (``keypoint_rescale``, over the view's RMS radius
-    with ``keypoint_scaling="per_view"``). Hidden points are zeroed first: whatever they
-    hold (1e20, NaN) never reaches the arithmetic."""
+    network's centred, rescaled input, the centre removed and the factor the centred points
+    were multiplied by. Hidden points are zeroed first (1e20, NaN never reach arithmetic)."""
     if cfg.keypoint_rescale == 0:  # the config's "from the data", never resolved
         raise ValueError("model.keypoint_rescale=0 means 'set it from the training data' and "
                          "was not resolved: the network would see zeros. Resolve it first "
-                         "(train.resolve_input_scale(config, train_data), as "
+                         "(resolve.resolve_input_scale(config, train_data), as "
                          "train_and_evaluate does; a loaded model has it)")
     if cfg.keypoint_scaling == "auto":
         raise ValueError("model.keypoint_scaling='auto' means 'from the training data' and was "
-                         "not resolved (train.resolve_keypoint_scaling(config, train_data), as "
-                         "train_and_evaluate does; a loaded model has it)")
+                         "not resolved (resolve.resolve_keypoint_scaling(config, train_data), "
+                         "as train_and_evaluate does; a loaded model has it)")
     kp = jnp.where(vis[:, None] > 0, kp, 0.0)
     if cfg.projection_type == "perspective":
         if intrinsics is None:
@@ -423,17 +319,22 @@ def _normalised_input(cfg: ModelConfig, kp, vis, intrinsics):
     return kp, kp_norm, centre, scale
 
 
-def _shape(net, params, alpha, class_mask):
+def canonical_shape(net, params, alpha, class_mask):
     """Canonical shape (N, 3) from basis coefficients; points outside the class are 0."""
     return net.apply({"params": params}, alpha, method="shape") * class_mask[:, None]
 
 
-def _class_centred(x, class_mask):
+def mean_shape(net, params, class_mask):
+    """The basis' mean shape (N, 3): the canonical shape of coefficients 0."""
+    return canonical_shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
+
+
+def class_centred(x, class_mask):
     """``x`` (N, C) minus the mean of its class's points, the other points zeroed."""
     return (x - geometry.masked_mean(x, class_mask)[None]) * class_mask[:, None]
 
 
-def _reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
+def reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
     """``(proj, depth, dist_sq)``: projection of the camera-frame shape, its depth and
     the squared distance of each projected point to the normalised input."""
     proj, depth = geometry.project(
@@ -446,7 +347,7 @@ def _reproject(cfg: ModelConfig, x_cam, kp_norm, vis):
     return proj, depth, jnp.sum((proj - kp_norm) ** 2, axis=-1)
 
 
-@_under_precision
+@under_precision
 def forward_train(
     variables: Variables,
     kp: Kp2,
@@ -462,21 +363,18 @@ def forward_train(
     function of its inputs and of the example's ``rotations``.
 
     Returns:
-      ``(terms, batch_stats)``: ``dist_sq`` (N,), the squared distance of each
-      reprojected point to the normalised input (unmasked), and ``canon_dist_sq``
-      (S, N), the squared distance of each point of Psi's reconstruction of each randomly
-      rotated canonical shape to that shape (S = 0 without Psi), ``deform_sq`` (N,), the
-      squared distance of each point of the canonical shape to the mean shape (its
-      deformation); with the example's 3D ground truth ``kp3d`` (camera frame, the input's
-      units; orthographic models), also ``sup_dist_sq`` (N,), the squared distance of each
-      point of the camera-frame shape to it, both centred on their class's points, in the
-      network's input units; ``x_canon`` (N, 3), the canonical shape (``losses.multiview``
-      compares those of one frame's views). The updated BatchNorm statistics. ``losses``
-      penalises and reduces them.
+      ``(terms, batch_stats)``, the updated BatchNorm statistics and squared distances
+      that ``losses`` penalises and reduces: ``dist_sq`` (N,) of each reprojected point to
+      the normalised input (unmasked); ``canon_dist_sq`` (S, N) of each point of Psi's
+      reconstruction of each randomly rotated canonical shape to that shape (S = 0 without
+      Psi); ``deform_sq`` (N,) of each canonical point to the mean shape's; with the 3D
+      ground truth ``kp3d`` (camera frame, input units), ``sup_dist_sq`` (N,) of each
+      camera-frame point to it, both class-centred, in network units. Also ``x_canon``
+      (N, 3), the canonical shape, and ``mean_shape``.
     """
     net = make_network(cfg)
     params, stats = variables["params"], variables["batch_stats"]
-    _, kp_norm, _, scale = _normalised_input(cfg, kp, vis, intrinsics)
+    _, kp_norm, _, scale = normalised_input(cfg, kp, vis, intrinsics)
 
     def phi(kp_in, stats):
         out, upd = net.apply(
@@ -503,17 +401,17 @@ def forward_train(
     else:
         phi_out, stats = phi(kp_in, stats)
 
-    x_canon = _shape(net, params, phi_out["alpha"], class_mask)
-    x_cam, t, _ = _camera(cfg, phi_out, x_canon)
+    x_canon = canonical_shape(net, params, phi_out["alpha"], class_mask)
+    x_cam, t, _ = camera_frame(cfg, phi_out, x_canon)
     r_aug3 = jnp.eye(3).at[:2, :2].set(r_aug)
     x_cam = (x_cam + t[None]) @ r_aug3  # applies R_aug^T to column vectors
-    _, _, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
-    mean_shape = _shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
+    _, _, dist_sq = reproject(cfg, x_cam, kp_norm, vis)
+    mean = canonical_shape(net, params, jnp.zeros_like(phi_out["alpha"]), class_mask)
     terms = {"dist_sq": dist_sq, "canon_dist_sq": jnp.zeros((0, cfg.n_keypoints)),
-             "deform_sq": jnp.sum((x_canon - mean_shape) ** 2, axis=-1), "x_canon": x_canon,
-             "mean_shape": mean_shape}
+             "deform_sq": jnp.sum((x_canon - mean) ** 2, axis=-1), "x_canon": x_canon,
+             "mean_shape": mean}
     if kp3d is not None:
-        terms["sup_dist_sq"] = jnp.sum((_class_centred(x_cam, class_mask) - _class_centred(
+        terms["sup_dist_sq"] = jnp.sum((class_centred(x_cam, class_mask) - class_centred(
             kp3d * scale, class_mask)) ** 2, axis=-1)
     if cfg.canonicalization:
         terms["canon_dist_sq"], stats = _canonicalisation(
@@ -530,413 +428,22 @@ def _canonicalisation(net, params, stats, x_canon, class_mask, rots):
             {"params": params, "batch_stats": stats}, x_canon @ rot.T, True,
             method="psi", mutable=["batch_stats"],
         )
-        x_hat = _shape(net, params, alpha_psi, class_mask)
+        x_hat = canonical_shape(net, params, alpha_psi, class_mask)
         return jnp.sum((x_hat - x_canon) ** 2, axis=-1), upd["batch_stats"]
 
     # Psi's BatchNorm statistics are means over the samples: one value (out_axes None).
     return jax.vmap(one, out_axes=(0, None), axis_name="sample")(rots)
 
 
-TURN_SPANS = ("augmentation", "circle", "circle_and_range")
-# "circle": the copies kept are those whose mean 2D reprojection distance is at most this
-# times the lowest of the view's copies (experiments/dev_suite, "Turned copies round the
-# circle, chosen by their 2D fit").
-TURN_KEEP_RATIO = 1.1
-# "circle_and_range": a copy counts as within the augmentation's range up to this many
-# radians beyond it (the circle's grid of 32 puts a copy at 2 pi / 16 = 0.39270 rad, the
-# release's range being 0.3925).
-TURN_RANGE_SLACK = 1e-3
-
-
-def turns_problem(turns: int, projection_type: str, z_augment: bool,
-                  z_augment_rot_angle: float, span: str = "augmentation") -> str:
-    """Why ``test_time_turns=turns`` cannot be used with these settings ('' if it can; a
-    single pass always can). ``span`` is one of ``TURN_SPANS``."""
-    if turns == 1:
-        return ""
-    ranged = span != "circle"  # the training augmentation's range is used
-    why = [
-        "an odd number" if span == "augmentation" and turns % 2 == 0 else "",
-        "used with model.projection_type='orthographic' only"
-        if projection_type == "perspective" else "",
-        f"used with model.z_augment=True and model.z_augment_rot_angle > 0 only (span "
-        f"{span!r} uses the training augmentation's range; model.test_time_turn_span="
-        "'circle' does not)"
-        if ranged and (not z_augment or z_augment_rot_angle == 0) else "",
-    ]
-    return "must be " + " and ".join(w for w in why if w) if any(why) else ""
-
-
-def turn_angles(cfg: ModelConfig) -> Float[Array, " A"]:
-    """The ``test_time_turns - 1`` nonzero in-plane angles of the turned copies: pairs
-    +-a spread evenly up to ``z_augment_rot_angle`` ("augmentation"), or steps of
-    2 pi / ``test_time_turns`` round the circle ("circle", "circle_and_range")."""
-    if cfg.test_time_turn_span != "augmentation":
-        return 2 * jnp.pi * jnp.arange(1, cfg.test_time_turns) / cfg.test_time_turns
-    k = (cfg.test_time_turns - 1) // 2
-    half = cfg.z_augment_rot_angle * jnp.arange(1, k + 1) / k
-    return jnp.concatenate([half, -half])
-
-
-def turns_in_range(cfg: ModelConfig) -> np.ndarray:
-    """(``test_time_turns``,) bool, static: which copies of "circle_and_range" (the view
-    itself first, then ``turn_angles``) are turned by at most ``z_augment_rot_angle`` plus
-    ``TURN_RANGE_SLACK``, either way round."""
-    turned_by = 2 * np.pi * np.arange(cfg.test_time_turns) / cfg.test_time_turns
-    off = np.abs(np.remainder(turned_by + np.pi, 2 * np.pi) - np.pi)
-    return off <= cfg.z_augment_rot_angle + TURN_RANGE_SLACK
-
-
 def orthographic_only(used: bool, off: str, projection_type: str) -> str:
-    """The problem of a setting for orthographic models (``off``: its value that turns it
-    off) when it is ``used`` with another projection; '' otherwise."""
+    """Why a setting for orthographic models (``off``: its value that turns it off) cannot
+    be ``used`` with this projection ('' if it can)."""
     if used and projection_type == "perspective":  # another value has its own problem
         return f"must be {off} for a perspective model: orthographic models only"
     return ""
-
-
-def refine_problem(iters: int, projection_type: str) -> str:
-    """Why ``test_time_refine_iters=iters`` cannot be used with this projection ('' if it
-    can; 0, no refinement, always can)."""
-    return orthographic_only(iters > 0, "0 (no refinement)", projection_type)
 
 
 def keypoint_scaling_problem(scaling: str, projection_type: str) -> str:
     """Why ``keypoint_scaling=scaling`` cannot be used with this projection ('' if it can):
     a perspective view's calibrated points are not a shape's projection up to a scale."""
     return orthographic_only(scaling == "per_view", "'global' or 'auto'", projection_type)
-
-
-def handedness_problem(one_handedness: bool, projection_type: str) -> str:
-    """Why ``test_time_one_handedness`` cannot be used with this projection ('' if it can)."""
-    return orthographic_only(one_handedness, "False", projection_type)
-
-
-# Bodies whose handedness ``test_time_handedness_reference`` can give every view, with the
-# number of points of their joint order (the built-in humans' average body,
-# ``data.humans.mean_pose``): "h36m", a person in Human3.6M's 17-joint order (pelvis,
-# right leg, left leg, spine, thorax, neck, head, left arm, right arm, as
-# ``skeletons.SKELETONS["h36m"]`` joins them); "coco", in COCO's 17 person keypoints, the
-# common 2D detectors' order (nose, eyes, ears, then shoulders, elbows, wrists, hips, knees,
-# ankles, left before right; ``data.humans.coco_from_h36m``).
-HANDEDNESS_REFERENCES = {"mean_shape": None, "h36m": 17, "coco": 17}
-# Files a training config (``test_time_handedness_reference``), ``reconstruct`` and
-# c3dpo-predict take a body from (``read_body``).
-BODY_FILE_SUFFIXES = (".npy", ".json", ".txt", ".csv")
-# A body whose centred points' smallest singular value is below this fraction of their
-# largest lies near a plane (or a line): its mirror image is nearly itself, so it has no
-# handedness to give (the built-in humans' average body: 0.20).
-BODY_MIN_THICKNESS = 0.05
-
-
-def is_body_file(name) -> bool:
-    """Whether ``name`` names a file to read a body from (by its suffix)."""
-    return isinstance(name, str) and name.lower().endswith(BODY_FILE_SUFFIXES)
-
-
-def read_body(path: str) -> np.ndarray:
-    """The (N, 3) body in ``path``: a ``.npy`` array, a ``.json`` list of N ``[x, y, z]``,
-    or ``.txt`` / ``.csv`` text of N rows of three numbers (spaces or commas). One-line
-    ``ValueError`` for a file that cannot be read as that."""
-    path = os.path.expanduser(path)
-    if not os.path.exists(path):
-        raise ValueError(f"body file {path!r} does not exist")
-    try:
-        if path.lower().endswith(".npy"):
-            body = np.load(path, allow_pickle=False)
-        elif path.lower().endswith(".json"):
-            with open(path, encoding="utf-8-sig") as f:
-                body = json.load(f)
-        else:
-            with open(path, encoding="utf-8-sig") as f:
-                body = np.loadtxt(f.read().replace(",", " ").splitlines(), ndmin=2)
-        body = np.asarray(body, np.float64)
-    except (ValueError, TypeError, OSError) as err:
-        raise ValueError(f"body file {path!r} is not N rows of (x, y, z): "
-                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}"
-                         ) from None
-    if body.ndim != 2 or body.shape[1] != 3:
-        raise ValueError(f"body file {path!r} holds an array of shape {body.shape}; a body is "
-                         "N rows of (x, y, z)")
-    return body
-
-
-def body_problem(body, n_keypoints: int) -> str:
-    """Why ``body`` cannot give the views of a model of ``n_keypoints`` points their
-    handedness ('' if it can)."""
-    try:
-        b = np.asarray(body, np.float64)
-    except (TypeError, ValueError):
-        return "a body is N rows of (x, y, z)"
-    if b.shape != (n_keypoints, 3):
-        return (f"a body of the model's {n_keypoints} points, N rows of (x, y, z); "
-                f"got shape {b.shape}")
-    if not np.isfinite(b).all():
-        return "the body has NaN or inf"
-    s = np.linalg.svd(b - b.mean(0), compute_uv=False)
-    if not s[0] > 0 or s[2] < BODY_MIN_THICKNESS * s[0]:
-        return ("the body's points lie near one plane, so its mirror image is nearly itself "
-                "and it has no handedness to give")
-    return ""
-
-
-def reference_problem(name, n_keypoints: int, one_handedness: bool = True,
-                      body=()) -> str:
-    """Why ``test_time_handedness_reference=name`` (with ``test_time_handedness_body=body``
-    for "body") cannot be used ('' if it can)."""
-    if name == "auto":
-        return ""
-    if isinstance(name, str) and name == "body":
-        if not len(body):
-            return ("test_time_handedness_body is empty: give its N rows of (x, y, z), or "
-                    f"name a body file ({', '.join(BODY_FILE_SUFFIXES)}) in a training config")
-        if why := body_problem(body, n_keypoints):
-            return why
-        return "" if one_handedness else "used with test_time_one_handedness=True only"
-    if is_body_file(name):
-        return ("a body file is read when training starts (train.resolve_handedness); a "
-                "model holds its points as 'body'")
-    if not isinstance(name, str) or name not in HANDEDNESS_REFERENCES:
-        return f"known: {', '.join(HANDEDNESS_REFERENCES)}, body, auto"
-    n = HANDEDNESS_REFERENCES[name]
-    if n is not None and n != n_keypoints:
-        return f"a body of {n} points in its joint order; the model has {n_keypoints}"
-    if n is not None and not one_handedness:
-        return "used with test_time_one_handedness=True only"
-    return ""
-
-
-@functools.lru_cache
-def _body(name: str) -> np.ndarray:
-    """The body ``name`` as a read-only numpy array, made once per process (numpy, not jax:
-    a jax array made while a function is traced would be that trace's)."""
-    from c3dpo_jax.data import humans  # numpy only; loaded when a body is asked for
-
-    body = np.asarray(humans.mean_pose(order=name), np.float32)
-    body.setflags(write=False)
-    return body
-
-
-def handedness_reference(name: str, body=()) -> Array | None:
-    """The (N, 3) body ``name`` of ``HANDEDNESS_REFERENCES``, or ``body`` for "body"
-    (None: the mean shape)."""
-    if name == "body":
-        return jnp.asarray(np.asarray(body, np.float32))
-    if name == "auto":
-        raise ValueError("model.test_time_handedness_reference='auto' means 'from the training "
-                         "data' and was not resolved (train.resolve_handedness(config, "
-                         "train_data), as train_and_evaluate does; a loaded model has it)")
-    if HANDEDNESS_REFERENCES[name] is None:
-        return None
-    return jnp.asarray(_body(name))
-
-
-def mean_shape_handed_as(net, params, class_mask, body):
-    """The basis' mean shape, mirrored (third axis negated) when it is nearer, up to a
-    proper rotation, to the mirror image of ``body`` (N, 3) than to the body. A user's body
-    (``test_time_handedness_reference="body"``) is one example in one pose, which the views
-    of other poses may not resemble; the mean shape, the model's typical pose, may. So a
-    view weighs both (``one_handedness`` with the two references)."""
-    mean = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
-    return mean * jnp.where(_nearer_mirror(mean, body, class_mask),
-                            jnp.array([1.0, 1.0, -1.0]), 1.0)[None]
-
-
-def _nearer_mirror(x, reference, class_mask):
-    """Whether the best orthogonal map of the centred shape ``x`` onto ``reference`` is a
-    reflection (det of their cross-covariance < 0): ``x`` is nearer, up to a proper
-    rotation, to the reference's mirror image than to the reference."""
-    return jnp.linalg.det(_class_centred(x, class_mask).T
-                          @ _class_centred(reference, class_mask)) < 0
-
-
-def handedness_evidence(x, reference, class_mask, floor=0.0):
-    """How much better a proper rotation than a reflection maps the shape ``x`` (N, 3) onto
-    ``reference``: ``(r_mirror - r_proper) / (r_mirror + r_proper)`` of the two Procrustes
-    residuals of the centred, unit-size shapes, in [-1, 1] (negative: nearer the mirror
-    image)."""
-    a, b = (_class_centred(y, class_mask) for y in (x, reference))
-    a, b = (y / jnp.maximum(jnp.linalg.norm(y), 1e-12) for y in (a, b))
-    cov = a.T @ b
-    sigma = jnp.linalg.svd(cov, compute_uv=False)
-    third = jnp.sign(jnp.linalg.det(cov)) * sigma[2]
-    proper, mirror = (jnp.sqrt(jnp.maximum(2.0 - 2.0 * (sigma[0] + sigma[1] + sign * third),
-                                           floor)) for sign in (1.0, -1.0))
-    return (mirror - proper) / jnp.maximum(mirror + proper, 1e-12)
-
-
-def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):
-    """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
-    ``x_canon`` is nearer, up to a proper rotation, to the mirror image of ``reference``
-    (N, 3), by default the basis' mean shape, than to the reference itself (the best
-    orthogonal map from one centred shape onto the other is then a reflection: det of their
-    cross-covariance < 0; comparing the two Procrustes residuals says the same). With a
-    tuple of references, mirrored when the sum of their ``handedness_evidence`` is
-    negative. The mirror image:
-    the camera-frame depth reflected about the translation's (``t``; an orthographic view's
-    2D points unchanged), the canonical shape's third axis negated and the rotation
-    conjugated by that reflection (``theta``'s first two components negated), so that
-    ``scale * x_canon @ rot.T + t`` is still ``x_cam``. Also returns 1.0 where the view was
-    mirrored, else 0.0."""
-    if reference is None:
-        reference = _shape(net, params, jnp.zeros(net.shape_basis_size), class_mask)
-    if isinstance(reference, tuple):
-        mirrored = sum(handedness_evidence(x_canon, r, class_mask) for r in reference) < 0
-    else:
-        mirrored = _nearer_mirror(x_canon, reference, class_mask)
-    flip = jnp.where(mirrored, jnp.array([1.0, 1.0, -1.0]), 1.0)
-    x_cam = (x_cam - t[None]) * flip[None] + t[None]
-    theta = theta * jnp.where(mirrored, jnp.array([-1.0, -1.0, 1.0]), 1.0)  # log of F R F
-    return (x_cam, x_canon * flip[None], flip[:, None] * rot * flip[None], theta,
-            mirrored.astype(x_cam.dtype))
-
-
-# Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
-# cost (accepted) and after one that does not (rejected, the damping raised).
-REFINE_DAMPING, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP = 1e-3, 0.3, 10.0
-
-
-def refine_camera_and_shape(cfg: ModelConfig, net, params, phi_out, kp_norm, vis, class_mask):
-    """Phi's output ``phi_out`` with its ``theta`` and ``alpha`` refined for one view:
-    ``cfg.test_time_refine_iters`` Levenberg-Marquardt steps from Phi's values on the mean
-    squared 2D distance of the reprojected visible points to ``kp_norm`` plus
-    ``cfg.test_time_refine_prior`` times the mean squared distance of the canonical shape's
-    points (those of ``class_mask``) to Phi's canonical shape. Scale and translation stay
-    Phi's. A step that does not lower the cost is not taken (the damping rises instead), so
-    the cost never rises above Phi's."""
-    x_phi = _shape(net, params, phi_out["alpha"], class_mask)
-    w2d = jnp.sqrt(vis / jnp.maximum(jnp.sum(vis), 1.0))[:, None]
-    w3d = jnp.sqrt(cfg.test_time_refine_prior * class_mask
-                   / jnp.maximum(jnp.sum(class_mask), 1.0))[:, None]
-
-    def residuals(p):
-        out = dict(phi_out, theta=p[:3], alpha=p[3:])
-        x_canon = _shape(net, params, out["alpha"], class_mask)
-        x_cam, t, _ = _camera(cfg, out, x_canon)
-        proj, _, _ = _reproject(cfg, x_cam + t[None], kp_norm, vis)
-        return jnp.concatenate([((proj - kp_norm) * w2d).ravel(),
-                                ((x_canon - x_phi) * w3d).ravel()])
-
-    def step(carry, _):
-        p, damping = carry
-        # One pass gives the residuals and their Jacobian (the residuals as jacfwd's aux).
-        jac, r = jax.jacfwd(lambda q: (lambda v: (v, v))(residuals(q)), has_aux=True)(p)
-        normal = jac.T @ jac
-        # Marquardt's scaling, floored so that a direction the cost does not see (a hidden
-        # view's rotation, an unused basis vector) still gets a damped, finite step.
-        # The damped normal matrix is symmetric positive definite: Cholesky, not LU.
-        delta = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(
-            normal + damping * jnp.diag(jnp.diag(normal) + 1e-9)), -jac.T @ r)
-        # False for a NaN step: it is not taken.
-        lower = jnp.sum(residuals(p + delta) ** 2) < jnp.sum(r**2)
-        return (jnp.where(lower, p + delta, p),
-                damping * jnp.where(lower, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP)), None
-
-    start = jnp.concatenate([phi_out["theta"], phi_out["alpha"]])
-    (p, _), _ = jax.lax.scan(step, (start, jnp.asarray(REFINE_DAMPING)), None,
-                             length=cfg.test_time_refine_iters)
-    return dict(phi_out, theta=p[:3], alpha=p[3:])
-
-
-def _phi_eval(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask):
-    """Phi's eval-mode output for one view, refined when ``test_time_refine_iters`` > 0."""
-    out = net.apply(variables, kp_norm, vis, False, method="phi")
-    if cfg.test_time_refine_iters > 0:
-        out = refine_camera_and_shape(cfg, net, variables["params"], out, kp_norm, vis,
-                                      class_mask)
-    return out
-
-
-def _turned_depth(cfg: ModelConfig, net, variables, kp_norm, vis, class_mask, x_cam):
-    """The median depth (N,) over the view (camera-frame shape ``x_cam``) and its copies
-    turned in-plane by ``turn_angles``, each copy's depth about its visible mean with its
-    sign matched to the unturned view's ("circle": over the copies whose mean 2D
-    reprojection distance to their own turned input is within ``TURN_KEEP_RATIO`` of the
-    lowest; "circle_and_range": those and every copy within ``z_augment_rot_angle`` (plus
-    ``TURN_RANGE_SLACK``) of the view), then the unturned mean depth added back."""
-    w = vis / jnp.maximum(jnp.sum(vis), 1.0)
-
-    def centred_depth_and_fit(x, kp_in):
-        _, depth, dist_sq = _reproject(cfg, x, kp_in, vis)
-        return depth - jnp.sum(w * depth), jnp.sum(w * jnp.sqrt(dist_sq))
-
-    centred, fit = centred_depth_and_fit(x_cam, kp_norm)
-
-    def copy(angle):
-        c, s = jnp.cos(angle), jnp.sin(angle)
-        turned = kp_norm @ jnp.array([[c, s], [-s, c]])
-        out = _phi_eval(cfg, net, variables, turned, vis, class_mask)
-        x, t, _ = _camera(cfg, out, _shape(net, variables["params"], out["alpha"], class_mask))
-        d, f = centred_depth_and_fit(x + t[None], turned)
-        return jnp.where(jnp.sum(w * d * centred) < 0, -d, d), f
-
-    depths, fits = jax.vmap(copy)(turn_angles(cfg))
-    depths = jnp.concatenate([centred[None], depths])
-    if cfg.test_time_turn_span != "augmentation":
-        fits = jnp.concatenate([fit[None], fits])
-        keep = fits <= TURN_KEEP_RATIO * jnp.min(fits)
-        if cfg.test_time_turn_span == "circle_and_range":
-            keep = keep | turns_in_range(cfg)
-        median = jnp.nanmedian(jnp.where(keep[:, None], depths, jnp.nan), axis=0)
-    else:
-        median = jnp.median(depths, axis=0)
-    return median + (x_cam[:, 2] - centred)
-
-
-@_under_precision
-def forward_eval(
-    variables: Variables,
-    kp: Kp2,
-    vis: Vis,
-    class_mask: Float[Array, " N"],
-    intrinsics: Float[Array, "3 3"] | None,
-    cfg: ModelConfig,
-) -> Prediction:
-    """Eval-mode reconstruction of one example (running BatchNorm statistics, no Psi);
-    the fields of the ``Prediction`` are documented there."""
-    net = make_network(cfg)
-    kp_cal, kp_norm, centre, scale = _normalised_input(cfg, kp, vis, intrinsics)
-    phi_out = _phi_eval(cfg, net, variables, kp_norm, vis, class_mask)
-    x_canon = _shape(net, variables["params"], phi_out["alpha"], class_mask)
-    x_cam, t, rot = _camera(cfg, phi_out, x_canon)
-    x_cam = x_cam + t[None]
-    if cfg.test_time_turns > 1:
-        x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, net, variables, kp_norm, vis, class_mask,
-                                                 x_cam))
-    theta, flipped = phi_out["theta"], jnp.zeros((), x_cam.dtype)
-    if cfg.test_time_one_handedness:
-        problem = handedness_problem(True, cfg.projection_type)
-        if problem:
-            raise ValueError(f"test_time_one_handedness=True ({problem})")
-        reference = handedness_reference(cfg.test_time_handedness_reference,
-                                         cfg.test_time_handedness_body)
-        if cfg.test_time_handedness_reference == "body":  # the example and the mean shape
-            reference = (reference, mean_shape_handed_as(net, variables["params"], class_mask,
-                                                         reference))
-        x_cam, x_canon, rot, theta, flipped = one_handedness(
-            net, variables["params"], x_cam, t, x_canon, rot, theta, class_mask, reference)
-    proj, depth, dist_sq = _reproject(cfg, x_cam, kp_norm, vis)
-    reproj_image = geometry.unnormalise_keypoints(proj, centre, scale)
-    image_xy = reproj_image
-    if cfg.replace_keypoints_with_input:
-        image_xy = jnp.where(vis[:, None] > 0, kp_cal, reproj_image)
-    shape_image = jnp.concatenate([image_xy, depth[:, None] / scale], axis=1)
-    if cfg.projection_type == "perspective":
-        # Reprojections back to pixels; shape_image_coord stays in calibrated units.
-        reproj_image = geometry.uncalibrate(reproj_image, intrinsics)
-    return Prediction(
-        shape_image_coord=shape_image,
-        shape_camera=x_cam,
-        shape_canonical=x_canon,
-        rotation=rot,
-        theta=theta,
-        alpha=phi_out["alpha"],
-        translation=t,
-        scale=phi_out["scale"],
-        kp_reprojected=reproj_image,
-        kp_norm=kp_norm,
-        kp_mean=centre,
-        kp_scale=scale,
-        dist_sq=dist_sq,
-        handedness_flipped=flipped,
-    )

@@ -1,10 +1,12 @@
 """Command line: 2D keypoints in a file -> 3D reconstructions out.
 
   c3dpo-predict --workdir=runs/synthetic --input=poses.json --output=out.npz [--figures=DIR]
-      [--refine_iters=0] [--turns=T] [--one_handedness]
-      [--handedness_reference=h36m|coco|BODY.npy|BODY.json|BODY.txt|BODY.csv]
+      [--refine_iters=0] [--refine_prior=W] [--turns=T] [--turn_span=circle]
+      [--one_handedness] [--handedness_reference=h36m|coco|BODY.npy|BODY.json|BODY.txt|BODY.csv]
+      [--handedness_body=BODY.npy] [--noreplace_keypoints_with_input]
 
-(or ``python -m c3dpo_jax.predict ...``). Errors in the input print as one line
+(or ``python -m c3dpo_jax.predict ...``). Every inference option (``lift.InferenceConfig``)
+is a flag of the same name; unset, the model's own. Errors in the input print as one line
 ``error: ...`` (exit status 2); ``--verbose`` keeps the traceback.
 
 Input: the release's JSON format (a list of entries with ``kp_loc`` 2 x N and
@@ -21,6 +23,7 @@ Output: ``.npz`` (arrays ``shape_3d (M, N, 3)``, ``shape_canonical``, ``rotation
 (a list with one dict of nested lists per reconstructed sample).
 """
 
+import dataclasses
 import json
 import os
 
@@ -28,6 +31,7 @@ import numpy as np
 from absl import flags, logging
 
 from c3dpo_jax import cli
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.reconstruct import Reconstruction, load, reconstruct
 
 _SUFFIXES = (".json", ".npz")
@@ -48,25 +52,46 @@ def _define_flags() -> dict:
         "y_up": flags.DEFINE_bool(
             "y_up", None, "Pictures: the input's y axis points up (motion capture) rather than "
             "down (image pixels) (default: the input's or the training data's setting)."),
-        "refine_iters": flags.DEFINE_integer(
-            "refine_iters", None, "Levenberg-Marquardt steps refining each view at inference "
-            "(0: Phi's own output, the release's single pass; default: the model's setting)."),
-        "turns": flags.DEFINE_integer(
-            "turns", None, "Copies of each view turned in-plane whose median depth is kept "
-            "(1: one pass; default: the model's setting; see reconstruct's turns)."),
-        "one_handedness": flags.DEFINE_bool(
-            "one_handedness", None, "Give every view the handedness of the model's mean shape "
-            "(a view and its depth mirror image fit the same 2D points; a model may lift some "
-            "views one way and the rest the other); default: the model's setting."),
-        "handedness_reference": flags.DEFINE_string(
-            "handedness_reference", None, "Where --one_handedness takes the handedness from: "
-            "'mean_shape' (the model's mean shape, which may itself be mirrored) or a body of "
-            "the model's joint order, 'h36m' (Human3.6M's 17 joints) or 'coco' (COCO's 17 "
-            "person keypoints), or a file of one 3D example of the points in the model's order "
-            "(.npy, .json, .txt, .csv: N rows of x, y, z, any pose, orientation and scale); "
-            "any body turns --one_handedness on; default: the model's setting."),
+        **_inference_flags(),
         "verbose": flags.DEFINE_bool("verbose", False, "Show the traceback of input errors."),
     }
+
+
+# The flags of the inference options, by the type of their ``InferenceConfig`` field; a
+# body (a tuple of rows) is a file's name.
+_DEFINE = {int: flags.DEFINE_integer, float: flags.DEFINE_float, bool: flags.DEFINE_bool,
+           str: flags.DEFINE_string, tuple: flags.DEFINE_string}
+_INFERENCE_HELP = {
+    "refine_iters": "Levenberg-Marquardt steps refining each view's camera and shape "
+                    "coefficients (0: Phi's own output, the release's single pass).",
+    "refine_prior": "Weight of the refinement's prior (the canonical shape's squared distance "
+                    "to Phi's).",
+    "turns": "Copies of each view turned in-plane whose median depth is kept (1: one pass).",
+    "turn_span": "Where the copies are turned: augmentation, circle or circle_and_range.",
+    "one_handedness": "Give every view the handedness of --handedness_reference (a view and "
+                      "its depth mirror image fit the same 2D points; a model may lift some "
+                      "views one way and the rest the other).",
+    "handedness_reference": "What the handedness is taken from: 'mean_shape' (the model's, "
+                            "which may itself be mirrored), a body of the model's joint order, "
+                            "'h36m' (Human3.6M's 17 joints) or 'coco' (COCO's 17 person "
+                            "keypoints), or a file of one 3D example of the points in the "
+                            "model's order (.npy, .json, .txt, .csv: N rows of x, y, z, any "
+                            "pose, orientation and scale); a body turns --one_handedness on, "
+                            "and with --noone_handedness it mirrors every view or none, as the "
+                            "model's mean shape is the body's mirror image or not.",
+    "handedness_body": "A file of one 3D example of the points, as --handedness_reference "
+                       "takes one (the reference 'body').",
+    "replace_keypoints_with_input": "The 3D output's x, y at visible points are the input "
+                                    "itself (--noreplace_keypoints_with_input: the "
+                                    "reprojection).",
+}
+
+
+def _inference_flags() -> dict:
+    """One flag per ``InferenceConfig`` field, of its name (None: the model's setting)."""
+    return {f.name: _DEFINE[f.type](f.name, None, _INFERENCE_HELP[f.name] + " Default: the "
+                                    "model's setting.")
+            for f in dataclasses.fields(InferenceConfig)}
 
 
 def read_coco(obj: dict) -> dict[str, np.ndarray]:
@@ -170,10 +195,9 @@ def _check_figures(figures: str | None, n_figures: int, skeleton, y_up) -> None:
 
 def run(workdir: str, input_path: str, output: str, figures: str | None = None,
         n_figures: int = 3, skeleton: str | None = None, y_up: bool | None = None,
-        refine_iters: int | None = None, turns: int | None = None,
-        one_handedness: bool | None = None,
-        handedness_reference: str | None = None) -> Reconstruction:
-    """What the command line does; returns the reconstructions it wrote."""
+        **options) -> Reconstruction:
+    """What the command line does; returns the reconstructions it wrote. ``options``:
+    ``reconstruct``'s inference options (None: the model's)."""
     _check_output(output)  # before the work, not after it
     _check_figures(figures, n_figures, skeleton, y_up)
     params = load(workdir)
@@ -190,8 +214,7 @@ def run(workdir: str, input_path: str, output: str, figures: str | None = None,
                          "a 'K' field (3 x 3) in every entry of the release's JSON format "
                          "(COCO annotations have none)")
     rec = reconstruct(params, inputs["kp"], inputs["vis"], K=K, class_mask=inputs.get("class_mask"),
-                      turns=turns, refine_iters=refine_iters, one_handedness=one_handedness,
-                      handedness_reference=handedness_reference)
+                      **options)
     write_output(rec, inputs["index"], output)
     logging.info("wrote %d reconstructions to %s", len(inputs["index"]), output)
     if figures:

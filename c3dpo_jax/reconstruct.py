@@ -8,12 +8,12 @@ Glossary: B batch, N keypoints, D shape-basis size. Inputs are user coordinates
 any tracing: shapes, an empty batch, NaN/inf or absurd values at visible points, a
 sample with nothing visible; a warning when the keypoints' scale is far from the training
 data's), pads the batch to the next power of two and runs the one jitted batched
-eval forward (``inference.forward_batch``): a model compiles once per bucket size
-(1, 2, 4, ...), not once per batch size. Outputs are numpy arrays with the input's
-leading dimensions.
+eval forward (``inference.forward_batch`` of ``lift.forward_eval``, with the model's
+inference options or the ones passed): a model compiles once per bucket size (1, 2, 4,
+...), not once per batch size. Outputs are numpy arrays with the input's leading
+dimensions.
 """
 
-import dataclasses
 import json
 import os
 from typing import Any, NamedTuple
@@ -25,23 +25,27 @@ import numpy as np
 from absl import logging
 from jax.typing import ArrayLike
 
-from c3dpo_jax import checkpoint, inference, model
+from c3dpo_jax import checkpoint, inference, lift, model
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.model import ModelConfig
 
 
 @flax.struct.dataclass
 class C3DPOParams:
-    """A model ready for inference: ``{"params", "batch_stats"}`` + static settings."""
+    """A model ready for inference: ``{"params", "batch_stats"}``, what the network is
+    (``config``) and how it lifts a view (``inference``, its own options, which
+    ``reconstruct``'s arguments override), both static."""
 
     variables: Any
     config: ModelConfig = flax.struct.field(pytree_node=False)
+    inference: InferenceConfig = flax.struct.field(pytree_node=False, default=InferenceConfig())
 
 
 class Reconstruction(NamedTuple):
     """Numpy outputs; leading dims ``*B`` as the input's (none for one sample).
 
     shape_3d (*B, N, 3): the 3D points in the camera frame, in the input's units
-      (= ``model.Prediction.shape_image_coord``): x, y are the input itself at visible
+      (``model.Prediction.shape_3d``): x, y are the input itself at visible
       points and the reprojection at hidden ones; depth is relative (compare shapes with
       their mean depth removed) and, from one view, its sign is ambiguous (a view and its
       depth mirror image fit the same points). A perspective model's x, y are calibrated
@@ -85,8 +89,10 @@ def load(path: str) -> C3DPOParams:
     if config is None or "model" not in config:
         raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")
     model_cfg = ModelConfig.from_dict(config["model"])
+    options = lift.inference_config(
+        model_cfg, InferenceConfig.from_dict(lift.saved_options(config)))
     variables, _ = checkpoint.restore_variables(workdir, model.variables_shape(model_cfg), step)
-    return C3DPOParams(variables=variables, config=model_cfg)
+    return C3DPOParams(variables=variables, config=model_cfg, inference=options)
 
 
 def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = None) -> str:
@@ -98,13 +104,14 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
       params: the model.
       workdir: directory to create.
       config_dict: a full resolved config (e.g. ``get_config().to_dict()``); its
-        ``model`` section is replaced by ``params.config``.
+        ``model`` and ``inference`` sections are replaced by ``params``' own.
 
     Returns:
       The workdir.
     """
     config = json.loads(json.dumps(dict(config_dict or {}), default=list))
     config["model"] = params.config.to_dict()
+    config["inference"] = params.inference.to_dict()
     config["software"] = [checkpoint.software_record()]  # what wrote it (e.g. a conversion)
     os.makedirs(workdir, exist_ok=True)
     checkpoint.save_config(workdir, config)
@@ -121,7 +128,7 @@ def _numeric(name: str, x, dtype=np.float32) -> np.ndarray:
     if isinstance(x, jax.core.Tracer):
         raise ValueError(f"{name} is a traced value: reconstruct runs on the host (it checks "
                          "its input, then runs one compiled batch); under jax.jit, vmap or "
-                         "grad use inference.forward_batch or model.forward_eval")
+                         "grad use inference.forward_batch or lift.forward_eval")
     try:
         raw = np.asarray(x)
         if not np.iscomplexobj(raw):
@@ -291,9 +298,10 @@ def _check_inputs(cfg: ModelConfig, kp, vis, K, class_mask):
 
 
 @jax.jit
-def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K):
-    out = inference.forward_batch(params.variables, kp, vis, class_mask, K, params.config)
-    return Reconstruction(out.shape_image_coord, out.shape_canonical, out.rotation, out.alpha,
+def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K, body):
+    out = inference.forward_batch(params.variables, kp, vis, class_mask, K, body,
+                                  params.config, params.inference)
+    return Reconstruction(out.shape_3d, out.shape_canonical, out.rotation, out.alpha,
                           out.kp_reprojected)
 
 
@@ -320,97 +328,22 @@ def body_distance(shapes, body) -> np.ndarray:
     return np.sqrt(np.maximum(2.0 - 2.0 * sigma.sum(-1), 0.0))
 
 
-def _warn_if_not_the_body(cfg: ModelConfig, canonical: np.ndarray) -> None:
-    """A warning when the views, taking their handedness from a body, do not look like it:
-    points in another order than the body's take a handedness that means nothing."""
-    if not cfg.test_time_one_handedness:
-        return
-    body = model.handedness_reference(cfg.test_time_handedness_reference,
-                                      cfg.test_time_handedness_body)
+def _warn_if_not_the_body(options: InferenceConfig, body, canonical: np.ndarray) -> None:
+    """A warning when the views, taking their handedness from ``body`` (None: none), do not
+    look like it: points in another order than the body's take a handedness that means
+    nothing."""
     if body is None:
         return
     distance = float(np.median(body_distance(canonical, np.asarray(body))))
     if distance > BODY_DISTANCE_WARNING:
-        name = cfg.test_time_handedness_reference
+        name = options.handedness_reference
         logging.warning(
             "the views' shapes are far from %s whose handedness they were given (median "
             "distance %.2f up to a rotation, mirror and scale; views in its joint order are "
             "within about 0.5, shuffled points about 1.3): check that the points are in its "
             "joint order (%s), or the handedness may be wrong",
             "the given body" if name == "body" else f"the {name!r} body", distance,
-            "the model's" if name == "body" else "model.HANDEDNESS_REFERENCES")
-
-
-def _count(name: str, value, least: int) -> int:
-    """``value`` as a Python int (numpy integers too) of at least ``least``, else a one-line
-    error naming ``name``. (``validation.Range`` checks the config's fields; inference does
-    not import that module, which imports the training code.)"""
-    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer) \
-            or value < least:
-        raise ValueError(f"{name}={value!r} (must be an integer >= {least}, or None)")
-    return int(value)
-
-
-def _inference_config(cfg: ModelConfig, turns, turn_span, refine_iters,
-                      one_handedness, handedness_reference=None) -> ModelConfig:
-    """``cfg`` with ``reconstruct``'s inference options (None: the model's own), each
-    checked against the model in one line."""
-    changes = {}
-    if turns is not None or turn_span is not None:
-        turns = _count("turns", cfg.test_time_turns if turns is None else turns, 1)
-        span = cfg.test_time_turn_span if turn_span is None else turn_span
-        if span not in model.TURN_SPANS:
-            raise ValueError(f"turn_span={span!r} (must be one of {model.TURN_SPANS}, or None)")
-        problem = model.turns_problem(turns, cfg.projection_type, cfg.z_augment,
-                                      cfg.z_augment_rot_angle, span)
-        if problem:
-            given = (f" with turn_span={span!r}" if turn_span is not None else
-                     f" with the model's turn_span {span!r} (pass turn_span= to choose another)")
-            problem = problem.replace("model.test_time_turn_span=", "turn_span=")
-            raise ValueError(f"turns={turns}{given} ({problem})")
-        changes.update(test_time_turns=turns, test_time_turn_span=span)
-    if refine_iters is not None:
-        refine_iters = _count("refine_iters", refine_iters, 0)
-        problem = model.refine_problem(refine_iters, cfg.projection_type)
-        if problem:
-            raise ValueError(f"refine_iters={refine_iters} ({problem})")
-        changes.update(test_time_refine_iters=refine_iters)
-    if one_handedness is not None:
-        if not isinstance(one_handedness, bool | np.bool_):
-            raise ValueError(f"one_handedness={one_handedness!r} (must be True, False or None)")
-        problem = model.handedness_problem(bool(one_handedness), cfg.projection_type)
-        if problem:
-            raise ValueError(f"one_handedness=True ({problem.replace('False', 'False or None')})")
-        changes.update(test_time_one_handedness=bool(one_handedness))
-    body = cfg.test_time_handedness_body
-    if handedness_reference is not None and (not isinstance(handedness_reference, str)
-                                             or model.is_body_file(handedness_reference)):
-        body = (model.read_body(handedness_reference) if isinstance(handedness_reference, str)
-                else handedness_reference)  # an (N, 3) body, or a file of one
-        handedness_reference = "body"
-        if why := model.body_problem(body, cfg.n_keypoints):
-            raise ValueError(f"handedness_reference: {why}")
-    if handedness_reference is not None:
-        if handedness_reference == "auto":
-            raise ValueError("handedness_reference='auto' (a training setting, resolved from "
-                             "the training views; name a body or 'mean_shape')")
-        if one_handedness is None:  # a body to take the handedness from turns it on
-            one_handedness = handedness_reference != "mean_shape" or cfg.test_time_one_handedness
-        if handedness_reference != "body":
-            body = ()
-        problem = model.reference_problem(handedness_reference, cfg.n_keypoints,
-                                          bool(one_handedness), body)
-        if problem:
-            raise ValueError(f"handedness_reference={handedness_reference!r} ("
-                             + problem.replace("test_time_one_handedness=True",
-                                               "one_handedness=True or None") + ")")
-        problem = model.handedness_problem(bool(one_handedness), cfg.projection_type)
-        if problem:
-            raise ValueError(f"handedness_reference={handedness_reference!r} ({problem})")
-        changes.update(test_time_one_handedness=bool(one_handedness),
-                       test_time_handedness_reference=handedness_reference,
-                       test_time_handedness_body=tuple(map(tuple, np.asarray(body).tolist())))
-    return dataclasses.replace(cfg, **changes) if changes else cfg
+            "the model's" if name == "body" else "lift.HANDEDNESS_REFERENCES")
 
 
 @model.single_precision
@@ -420,11 +353,7 @@ def reconstruct(
     vis: ArrayLike | list,
     K: ArrayLike | None = None,
     class_mask: ArrayLike | None = None,
-    turns: int | np.integer | None = None,
-    turn_span: str | None = None,
-    refine_iters: int | np.integer | None = None,
-    one_handedness: bool | None = None,
-    handedness_reference: str | ArrayLike | None = None,
+    **options,
 ) -> Reconstruction:
     """3D reconstruction of 2D keypoints with a trained model (eval mode).
 
@@ -435,31 +364,16 @@ def reconstruct(
       vis: (N,) or (B, N), 1 visible, 0 not; every sample needs a visible point.
       K: intrinsics (3, 3) or (B, 3, 3); required by perspective models only.
       class_mask: (N,) or (B, N) block of the sample's class (multi-class models).
-      turns: copies of each view turned in-plane whose median depth is kept (1: one
-        pass, as the release; None: the model's ``test_time_turns``, which the own-data
-        recipe sets). See ``model.ModelConfig.test_time_turns``.
-      turn_span: where the copies are turned: "augmentation" (within the training
-        augmentation's range, all kept; odd ``turns``), "circle" (round the full circle,
-        those that fit their 2D input best kept) or "circle_and_range" (round the circle,
-        those and every copy within the training augmentation's range kept); None: the
-        model's ``test_time_turn_span``.
-      refine_iters: Levenberg-Marquardt steps that refine Phi's camera and coefficients
-        for each view (and each turned copy) at inference (0: Phi's output, as the release;
-        None: the model's ``test_time_refine_iters``, which the own-data recipe sets);
-        orthographic models only. See ``model.refine_camera_and_shape``.
-      one_handedness: give every view the handedness of the model's mean shape (a view
-        and its depth mirror image fit the same 2D points, and a model may lift some views
-        one way and the rest the other; the 2D fit is unchanged); None: the model's
-        ``test_time_one_handedness``; orthographic models only.
-      handedness_reference: where ``one_handedness`` takes the handedness from:
-        "mean_shape" (the model's mean shape, whose own handedness the 2D views leave
-        open: all views right or all one mirror flip away) or a body of the model's joint
-        order, "h36m" (Human3.6M's 17 joints) or "coco" (COCO's 17 person keypoints):
-        every view gets a real body's handedness (turns ``one_handedness`` on unless it is
-        False); for points in any other order, one 3D example of them, an (N, 3) array or
-        a file (``model.read_body``: .npy, .json, .txt, .csv), in any position,
-        orientation and scale (a frame of motion capture, a rig's rest pose); None: the
-        model's ``test_time_handedness_reference``. See ``model.HANDEDNESS_REFERENCES``.
+      **options: inference options, each a field of ``lift.InferenceConfig`` by its name
+        (None or absent: the model's own, ``params.inference``): ``refine_iters``,
+        ``refine_prior``, ``turns``, ``turn_span``, ``one_handedness``,
+        ``handedness_reference``, ``handedness_body``, ``replace_keypoints_with_input``.
+        ``handedness_reference`` (and ``handedness_body``) also take one 3D example of the
+        points, an (N, 3) array or a file (``bodies.read_body``: .npy, .json, .txt, .csv),
+        in any position, orientation and scale; a body given without ``one_handedness``
+        turns it on, and with ``one_handedness=False`` it gives the whole model one mirror
+        decision (``lift.InferenceConfig``). Checked against the model in one line
+        (``lift.inference_config``).
 
     Returns:
       A ``Reconstruction`` of numpy arrays with the input's leading dimensions;
@@ -467,9 +381,8 @@ def reconstruct(
       float16) array, so coordinates far from 0 keep their precision (an orthographic
       model lifts each view centred on its visible points, in float64).
     """
-    params = params.replace(config=_inference_config(params.config, turns, turn_span,
-                                                      refine_iters, one_handedness,
-                                                      handedness_reference))
+    params = params.replace(inference=lift.inference_config(params.config, params.inference,
+                                                            **options))
     precise = getattr(kp, "dtype", None) not in (np.float32, np.float16)  # lists: float64
     single, kp, offset, vis, K, class_mask = _check_inputs(params.config, kp, vis, K,
                                                            class_mask)
@@ -478,8 +391,9 @@ def reconstruct(
     b = kp.shape[0]
     idx = inference.wrap_indices(0, inference.bucket_size(b), b)
     padded = [None if a is None else jnp.asarray(a[idx]) for a in (kp, vis, class_mask, K)]
+    body = lift.options_body(params.inference)
     out = Reconstruction(*(np.asarray(a[:b]) for a in jax.device_get(
-        _reconstruct_batch(params, *padded))))
+        _reconstruct_batch(params, *padded, body))))
     # The centre back on, in the input's precision (float32 for float32 input).
     dtype = np.float64 if precise else np.float32
     out = out._replace(
@@ -489,7 +403,7 @@ def reconstruct(
     bad = np.flatnonzero(~np.isfinite(out.shape_3d).all((1, 2)))
     if bad.size:  # a safety net: the checks above should leave nothing to catch here
         raise ValueError(f"the reconstruction of {_samples(bad)} is not finite")
-    _warn_if_not_the_body(params.config, out.shape_canonical)
+    _warn_if_not_the_body(params.inference, body, out.shape_canonical)
     return Reconstruction(*(a[0] if single else a for a in out))
 
 

@@ -43,25 +43,22 @@ from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from c3dpo_jax import (
-    baselines,
     checkpoint,
     device_data,
     evaluation,
+    lift,
     model,
     run_records,
     validation,
     workdir_lock,
 )
-from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, load_splits
+from c3dpo_jax.data import KeypointData, load_splits
 from c3dpo_jax.data.dataset import fingerprint
-from c3dpo_jax.inference import (
-    evaluate_baselines,
-    evaluate_split,
-    make_eval_fn,
-    predict_split,
-)
+from c3dpo_jax.inference import evaluate_baselines, evaluate_split
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.losses import RAMPED_TERMS, LossConfig, make_loss_fn
 from c3dpo_jax.reconstruct import load, split_path
+from c3dpo_jax.resolve import resolve_from_data
 from c3dpo_jax.state import (
     OptimConfig,
     TrainState,
@@ -121,16 +118,11 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
     return chunk
 
 
-# The eval path of a split lives in ``inference``; ``make_eval_fn``, ``predict_split`` and
-# ``evaluate_split`` stay importable from here, and ``predict`` is ``predict_split``'s
-# older name (the experiments' scripts use it; it clashed with the ``predict`` module).
-predict = predict_split
-
-
 def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
                        n_keypoints: int) -> None:
     """The splits' keypoint counts, against each other and then the model's: first of all,
-    since what is worked out from the data (``resolve_from_data``) assumes them equal."""
+    since what is worked out from the data (``resolve.resolve_from_data``) assumes them
+    equal."""
     if train_data.n_keypoints != test_data.n_keypoints:
         raise ValueError(
             f"the train split has {train_data.n_keypoints} keypoints and the test split "
@@ -200,11 +192,13 @@ def _progress_bar(**kwargs):
 class RunSpec:
     """What a config asks the training loop to do, resolved once (no ml_collections below).
 
-    ``total_steps`` is ``train.num_steps`` or ``epochs * steps_per_epoch``; ``eval_every``
-    is in steps (``train.eval_every_steps``, else ``eval_every_epochs`` epochs; 0: only the
-    final evaluation)."""
+    ``inference`` is how its evaluations lift the test views (a training config's may hold
+    what ``resolve.resolve_handedness`` resolves). ``total_steps`` is ``train.num_steps`` or
+    ``epochs * steps_per_epoch``; ``eval_every`` is in steps (``train.eval_every_steps``,
+    else ``eval_every_epochs`` epochs; 0: only the final evaluation)."""
 
     model: model.ModelConfig
+    inference: InferenceConfig
     optim: OptimConfig
     loss: LossConfig
     batch_size: int
@@ -218,6 +212,7 @@ class RunSpec:
         steps_per_epoch = max(t.samples_per_epoch // t.batch_size, 1)
         eval_every = t.get("eval_every_steps", 0) or t.eval_every_epochs * steps_per_epoch
         return cls(model=model.ModelConfig.from_dict(config.model),
+                   inference=InferenceConfig.from_dict(config.get("inference", {})),
                    optim=OptimConfig.from_dict(config.optim), loss=LossConfig(**config.loss),
                    batch_size=t.batch_size, steps_per_epoch=steps_per_epoch,
                    total_steps=t.num_steps or t.epochs * steps_per_epoch,
@@ -334,140 +329,6 @@ class _StopSignals:
             signal.signal(sig, handler)
 
 
-def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.keypoint_rescale = 0`` means "from the data": a copy of ``config`` with the
-    value a saved config (``saved``, a workdir's config.json) holds, else the one
-    ``auto_keypoint_rescale`` gives for the training split (written to config.json, so
-    inference uses the same number); other values are returned unchanged."""
-    if config.model.keypoint_rescale != 0:
-        return config
-    config = config.copy_and_resolve_references()
-    perspective = config.model.projection_type == "perspective"
-    config.model.keypoint_rescale = ((saved or {}).get("model", {}).get("keypoint_rescale")
-                                     or auto_keypoint_rescale(train_data, calibrate=perspective))
-    logging.info("input scale from the training data: model.keypoint_rescale=%.6g",
-                 config.model.keypoint_rescale)
-    return config
-
-
-# The median 2D distance (over each view's RMS radius) of a body of
-# ``model.HANDEDNESS_REFERENCES``, under each view's best scaled orthographic camera, to the
-# training views below which ``resolve_handedness`` takes the views for that body's joint
-# order. "h36m" on 500 training views: CMU subject 131 0.31, the built-in humans 0.21,
-# DeepMimic's joints in its order 0.36; the same views with their points shuffled 0.91-0.98.
-# "coco" on CMU 131's people in COCO's order 0.28 (the h36m body there: 0.78).
-BODY_FIT_2D = 0.6
-BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
-
-
-def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VIEWS) -> float:
-    """The median over up to ``n_views`` views of ``data`` of the RMS 2D distance of the
-    body's projection under the view's best rigid camera (``baselines.fit_camera``) to its
-    visible points, over their RMS radius about their mean (0: the body itself; about 1:
-    no likeness)."""
-    idx = np.unique(np.linspace(0, len(data) - 1, min(n_views, len(data))).astype(int))
-    kp, vis = data.kp[idx].astype(np.float64), data.vis[idx].astype(np.float64)
-    camera = baselines.fit_camera(np.asarray(body, np.float64), kp, vis)
-    error = baselines.reprojection_residual(baselines.project(*camera), kp, vis)
-    centred = kp - baselines.visible_mean(kp, vis)[:, None]
-    radius = baselines.visible_mean((centred ** 2).sum(-1, keepdims=True), vis)[:, 0]
-    return float(np.median(np.sqrt(error / np.maximum(radius, 1e-12))))
-
-
-def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.test_time_handedness_reference = "auto"`` means "from the data": a copy of
-    ``config`` with the value (and ``test_time_one_handedness``) a saved config holds, else
-    the body of ``model.HANDEDNESS_REFERENCES`` of the model's number of points whose
-    projections fit the training views best, if they fit it (``body_fit_2d`` below
-    ``BODY_FIT_2D``: points in its joint order), with ``test_time_one_handedness`` on, else
-    "mean_shape" (and ``test_time_one_handedness`` as it is). A body file
-    (``model.BODY_FILE_SUFFIXES``) is read into ``test_time_handedness_body`` with the
-    reference "body" and ``test_time_one_handedness`` on (a saved config's body, when it
-    has one: a resumed run keeps the body it started with). Other values are returned
-    unchanged."""
-    reference = config.model.get("test_time_handedness_reference")
-    before = (saved or {}).get("model", {})
-    if model.is_body_file(reference):
-        config = config.copy_and_resolve_references()
-        if before.get("test_time_handedness_reference") == "body":
-            body = np.asarray(before["test_time_handedness_body"], np.float64)
-        else:
-            body = model.read_body(reference)
-        if why := model.body_problem(body, config.model.n_keypoints):
-            raise ValueError(f"config.model.test_time_handedness_reference={reference!r} "
-                             f"({why})")
-        config.model.test_time_handedness_reference = "body"
-        config.model.test_time_handedness_body = tuple(map(tuple, body.tolist()))
-        config.model.test_time_one_handedness = True
-        return config
-    if reference != "auto":
-        return config
-    config = config.copy_and_resolve_references()
-    if before.get("test_time_handedness_reference", "auto") != "auto":
-        config.model.test_time_handedness_reference = before["test_time_handedness_reference"]
-        config.model.test_time_one_handedness = bool(before.get("test_time_one_handedness"))
-        return config
-    config.model.test_time_handedness_reference = "mean_shape"
-    if config.model.projection_type != "orthographic":
-        return config
-    fits = {name: body_fit_2d(np.asarray(model.handedness_reference(name)), train_data)
-            for name, n in model.HANDEDNESS_REFERENCES.items()
-            if n is not None and n == config.model.n_keypoints}
-    name = min(fits, key=fits.get, default=None)  # bodies of one number of points: the nearest
-    if name is not None and fits[name] < BODY_FIT_2D:
-        config.model.test_time_handedness_reference = name
-        config.model.test_time_one_handedness = True
-        logging.info("handedness at inference from the %r body: the training views fit its "
-                     "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
-    return config
-
-
-# How much views that look alike differ in size (``data.alike_view_size_ratio``) above
-# which ``resolve_keypoint_scaling`` scales each view by its own size: between the largest
-# among the development suite's sets, each seen at one distance (the built-in humans' 1.07,
-# whose bodies differ in height; the others 1.01-1.05), and the same human sets with every
-# view scaled by a factor between 0.5 and 2 (1.48-1.50), where one input scale for every
-# view failed (CMU 131: 0.51, worse than zero depth; per view 0.12) and per view fails at one
-# distance (CMU 131 0.17 against 0.08, the shark 0.28 against 0.03): the geometric mean of
-# their logarithms (experiments/dev_suite, "People at different distances").
-ALIKE_SIZE_RATIO = 1.18
-
-
-def resolve_keypoint_scaling(config, train_data: KeypointData, saved: dict | None = None):
-    """``model.keypoint_scaling = "auto"`` means "from the data": a copy of ``config`` with
-    the value a saved config holds ("global" for one that predates the option), else
-    "per_view" for an orthographic model whose training views that look alike differ in
-    size by more than ``ALIKE_SIZE_RATIO`` (subjects at different distances), else
-    "global"; other values are returned unchanged."""
-    if config.model.get("keypoint_scaling") != "auto":
-        return config
-    config = config.copy_and_resolve_references()
-    if saved and "model" in saved:  # a run made before the option had one input scale
-        config.model.keypoint_scaling = saved["model"].get("keypoint_scaling", "global")
-        if config.model.keypoint_scaling != "auto":
-            return config
-    config.model.keypoint_scaling = "global"
-    if config.model.projection_type != "orthographic":
-        return config
-    ratio = alike_view_size_ratio(train_data)
-    if ratio > ALIKE_SIZE_RATIO:
-        config.model.keypoint_scaling = "per_view"
-        logging.info("each view scaled by its own size (model.keypoint_scaling=per_view): "
-                     "training views that look alike differ in size by %.2fx (median), above "
-                     "%.2fx, as for subjects at different distances", ratio, ALIKE_SIZE_RATIO)
-    return config
-
-
-def resolve_from_data(config, train_data: KeypointData, saved: dict | None = None):
-    """``config`` with the settings it leaves to the training data resolved: the input scale
-    (``resolve_input_scale``), the scaling of each view (``resolve_keypoint_scaling``) and the
-    handedness at inference (``resolve_handedness``), each from ``saved`` (a workdir's
-    config.json) when it holds them."""
-    config = resolve_keypoint_scaling(resolve_input_scale(config, train_data, saved),
-                                      train_data, saved)
-    return resolve_handedness(config, train_data, saved)
-
-
 def _start_from(state: TrainState, path: str) -> TrainState:
     """``state`` with the parameters and BatchNorm statistics of the model at ``path`` (a
     workdir or one of its checkpoint steps; ``train.init_from``), the optimiser fresh."""
@@ -515,6 +376,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                   checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
     config = resolve_from_data(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
+    options = lift.inference_config(spec.model, spec.inference)
     for warning in spec.warnings():
         logging.warning("%s", warning)
     if spec.batch_size > len(train_data):
@@ -562,11 +424,10 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh,
                                      spec.loss.multiview_views if by_frame else 0),
                     static_argnames="n_steps", donate_argnums=0)
-    eval_fn = jax.jit(make_eval_fn(spec.model))
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
     def evaluate(state, step):
-        res = evaluate_split(state.variables, test_data, spec.model, protocol, eval_fn, eval_bs)
+        res = evaluate_split(state.variables, test_data, spec.model, options, protocol, eval_bs)
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
@@ -645,8 +506,9 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     return results
 
 
-# Model fields that may differ between a run and its scoring (``--mode=eval``): besides
-# the ``test_time_*`` options, how the matmuls are done and what only training reads.
+# Model fields that may differ between a run and its scoring (``--mode=eval``): how the
+# matmuls are done and what only training reads (the inference options are a config of
+# their own, ``lift.InferenceConfig``).
 _SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_angle",
                     "n_rand_samples", "canonicalization_rot_angle", "weight_init_std")
 
@@ -656,14 +518,16 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
     """Refuses in one line to score a workdir's checkpoints with a config whose model
     differs from the one its run trained (other parameter shapes, or other settings such as
     the input scale, which would score another function of the same parameters), naming
-    the fields that differ; the inference options (``test_time_*``, ``matmul_precision``)
-    and the fields only training reads (``_SCORING_OPTIONS``) may differ."""
+    the fields that differ; ``matmul_precision`` and the fields only training reads
+    (``_SCORING_OPTIONS``) may differ, and the inference options are not the model's (a
+    saved model section that holds them, ``model.MOVED_TO_INFERENCE``, is read without
+    them)."""
     if not saved or "model" not in saved:
         return
 
     def network(fields: dict) -> dict:
         return {k: v for k, v in fields.items()
-                if not k.startswith("test_time_") and k not in _SCORING_OPTIONS}
+                if k not in model.MOVED_TO_INFERENCE and k not in _SCORING_OPTIONS}
 
     now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
     diffs = checkpoint.differences({"model": network(saved["model"])}, {"model": network(now)})
@@ -677,15 +541,15 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
                      f"{more}); evaluate it with the config it was trained with")
 
 
-def _inference_options(config, saved: dict | None) -> dict:
-    """The config's ``model.test_time_*`` options that differ from the run's saved config
-    (the others are in its config.json; an option the run's config predates counts as its
-    default, which such a run used)."""
+def _inference_options(options: InferenceConfig, saved: dict | None) -> dict:
+    """The inference options of ``options`` that differ from the run's saved config's
+    (``lift.saved_options``: an option the run's config predates counts as its default,
+    which such a run used)."""
     if not saved or "model" not in saved:
         return {}
-    now = json.loads(json.dumps(config.model.to_dict()))
-    before = {**json.loads(json.dumps(model.ModelConfig().to_dict())), **saved["model"]}
-    return {k: v for k, v in now.items() if k.startswith("test_time_") and before[k] != v}
+    now = json.loads(json.dumps(options.to_dict()))  # tuples as the saved JSON lists
+    before = {**json.loads(json.dumps(InferenceConfig().to_dict())), **lift.saved_options(saved)}
+    return {k: v for k, v in now.items() if before[k] != v}
 
 
 @model.single_precision
@@ -698,8 +562,9 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     final scores of a later step: ``run_records.left_unwritten``); its training history stays,
     and the new ``final`` keeps the training clock of the latest record at or before the
     checkpoint's step (``run_records.clock_at``). Where the config's inference options
-    (``model.test_time_*``) differ from the run's, ``final["inference"]`` records those that
-    differ, since the history's records were made with the run's.
+    (``config.inference``, checked against the model by ``lift.inference_config``) differ
+    from the run's, ``final["inference"]`` records those that differ, since the history's
+    records were made with the run's.
     """
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
@@ -708,17 +573,18 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
     model_cfg = spec.model
+    options = lift.inference_config(model_cfg, spec.inference)
     template = model.variables_shape(model_cfg)
     _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
     _check_data(test_data, model_cfg, "test")
-    final = evaluate_split(variables, test_data, model_cfg, config.data.protocol,
+    final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     before = run_records.read_results(workdir)
     clock = run_records.clock_at(before, step)
     final = dict(step=step, epoch=step // spec.steps_per_epoch,
                  **({} if clock is None else {"train_s": clock}), **final)
-    inference = _inference_options(config, saved)
+    inference = _inference_options(options, saved)
     if inference:
         final["inference"] = inference
     results = dict(before, final=final,

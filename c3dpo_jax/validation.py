@@ -14,7 +14,7 @@ import dataclasses
 import math
 from typing import Any
 
-from c3dpo_jax import losses, model, state
+from c3dpo_jax import lift, losses, model, state
 
 # Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
 PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
@@ -72,17 +72,6 @@ class OneOf:
         return "one of " + ", ".join(repr(o) for o in self.options)
 
 
-class BodyOrOneOf(OneOf):
-    """One of ``options``, or the name of a body file (``model.BODY_FILE_SUFFIXES``)."""
-
-    def __contains__(self, value: Any) -> bool:
-        return super().__contains__(value) or model.is_body_file(value)
-
-    def __str__(self) -> str:
-        return (super().__str__() + ", or a body file ("
-                + ", ".join(model.BODY_FILE_SUFFIXES) + ")")
-
-
 POSITIVE_INT = Range(lo=1, integer=True)
 COUNT = Range(lo=0, integer=True)
 POSITIVE = Range(lo=0, lo_open=True)
@@ -127,12 +116,6 @@ RULES: dict[str, Range | OneOf] = {
     "model.z_augment_rot_angle": ANGLE,
     "model.z_equivariance_rot_angle": ANGLE,
     "model.canonicalization_rot_angle": ANGLE,
-    "model.test_time_turns": POSITIVE_INT,
-    "model.test_time_turn_span": OneOf(model.TURN_SPANS),
-    "model.test_time_handedness_reference": BodyOrOneOf((*model.HANDEDNESS_REFERENCES,
-                                                         "body", "auto")),
-    "model.test_time_refine_iters": COUNT,
-    "model.test_time_refine_prior": NON_NEGATIVE,
     "loss.huber_scaling": POSITIVE,
     "loss.reprojection_normalization": OneOf(losses.NORMALIZATIONS),
     "model.weight_init_std": NON_NEGATIVE,
@@ -189,32 +172,13 @@ def _cross_field(cfg: dict) -> list[str]:
         and not root < n
     ):
         problems.append(f"config.model.root_joint={root} (must be below model.n_keypoints={n})")
-    turns, span = get("model.test_time_turns"), get("model.test_time_turn_span")
-    span = "augmentation" if span is _MISSING else span
-    if isinstance(turns, int) and turns > 1 and span in model.TURN_SPANS:  # as reconstruct
-        problems.append(model.turns_problem(turns, get("model.projection_type"),
-                                            get("model.z_augment") is not False,
-                                            get("model.z_augment_rot_angle"), span))
-        if problems[-1]:
-            problems[-1] = (f"config.model.test_time_turns={turns} ({problems[-1]}; 1 is "
-                            "the single pass)")
     projection = get("model.projection_type")
-    for key, kind, rule in (("model.test_time_refine_iters", int, model.refine_problem),
-                            ("model.test_time_one_handedness", bool, model.handedness_problem),
-                            ("model.keypoint_scaling", str, model.keypoint_scaling_problem),
+    for key, kind, rule in (("model.keypoint_scaling", str, model.keypoint_scaling_problem),
                             ("loss.w_supervised", (int, float), losses.supervised_problem)):
         value = get(key)  # settings for orthographic models only
         if isinstance(value, kind) and isinstance(projection, str):
             problem = rule(value, projection)
             problems.append(f"config.{key}={value} ({problem})" if problem else "")
-    reference = get("model.test_time_handedness_reference")
-    if isinstance(reference, str) and reference in model.HANDEDNESS_REFERENCES and isinstance(
-            n, int):
-        problem = model.reference_problem(reference, n,
-                                          get("model.test_time_one_handedness") is True)
-        if problem:
-            problems.append(f"config.model.test_time_handedness_reference={reference!r} "
-                            f"({problem})")
     milestones = get("optim.lr_milestones")
     if milestones is not _MISSING:
         bad = [m for m in milestones or () if m not in COUNT]
@@ -261,6 +225,25 @@ def _cross_field(cfg: dict) -> list[str]:
     return problems
 
 
+def _inference(cfg: dict) -> list[str]:
+    """The problems of the config's inference options (``lift.field_problems``, then
+    ``lift.problems`` against its model when both are sound; the placeholders resolved from
+    the training data allowed), and a model section that sets one of them
+    (``model.MOVED_TO_INFERENCE``), each line naming its inference field."""
+    section = {k: v for k, v in cfg.get("inference", {}).items() if k in lift.FIELDS}
+    problems = [f"config.inference.{p}" for p in lift.field_problems(section)]
+    problems += [f"config.model.{old} is now config.inference.{new}"
+                 for old, new in model.MOVED_TO_INFERENCE.items() if old in cfg.get("model", {})]
+    if problems or "model" not in cfg:
+        return problems
+    try:
+        model_cfg = model.ModelConfig.from_dict(cfg["model"])
+    except (TypeError, ValueError):  # the model's own problems are said by RULES
+        return problems
+    options = lift.InferenceConfig.from_dict(section)
+    return [f"config.inference.{p}" for p in lift.problems(options, model_cfg, resolved=False)]
+
+
 def config_problems(config) -> list[str]:
     """Every problem of ``config``, one ``config.FIELD=VALUE (must be ...)`` line each."""
     cfg = config.to_dict() if hasattr(config, "to_dict") else dict(config)
@@ -269,7 +252,7 @@ def config_problems(config) -> list[str]:
         value = _lookup(cfg, path)
         if value is not _MISSING and value not in allowed:
             problems.append(f"config.{path}={value!r} (must be {allowed})")
-    return problems + _cross_field(cfg)
+    return problems + _inference(cfg) + _cross_field(cfg)
 
 
 def check_config(config) -> None:

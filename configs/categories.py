@@ -8,7 +8,7 @@ into one 45-keypoint layout with ``class_mask``; samples drawn class-balanced; t
 ``pascal3d`` protocol averages the error per class. CPU-sized networks and Adam. At
 inference each view's camera and coefficients are refined from Phi's output
 (``default.refined_inference``; its evidence is experiments/dev_suite's);
-``--config.model.test_time_refine_iters=0`` gives Phi's single pass.
+``--config.inference.refine_iters=0`` gives Phi's single pass.
 """
 
 from c3dpo_jax.data import categories

@@ -21,6 +21,7 @@ import dataclasses
 import ml_collections
 
 from c3dpo_jax import losses
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.model import ModelConfig
 
 VARIANTS = ("smoke", "base", "equiv", "full", "supervised")
@@ -66,6 +67,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         ),
     )
     c.model = dataclasses.asdict(ModelConfig())
+    # lift.InferenceConfig: how a trained model lifts a view (refinement, turned copies,
+    # handedness); none of it changes training.
+    c.inference = dataclasses.asdict(InferenceConfig())
     # losses.LossConfig: the weights (canonicalization_ramp=(first, last) steps moves the
     # canonicalisation weight linearly to w_canonicalization_final; () keeps it constant)
     # and the options of the terms (the release keeps them with the model); w_deformation
@@ -123,7 +127,7 @@ def cpu_recipe(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     c.model.shape_basis_size = 10
     c.model.n_fully_connected = c.model.canonicalization_n_fully_connected = 256
     c.model.n_layers = c.model.canonicalization_n_layers = 3
-    c.model.keypoint_rescale = 0.0  # from the training data (train.resolve_input_scale)
+    c.model.keypoint_rescale = 0.0  # from the training data (resolve.resolve_input_scale)
     c.model.argmin_translation = True  # robust to occluded points (paper Sec. 4.4)
     c.model.z_augment = True
     c.model.z_augment_rot_angle = 0.3925
@@ -142,9 +146,9 @@ def refined_inference(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
     """Not in the paper, at inference only: Phi's camera and shape coefficients for each view
     start 20 Levenberg-Marquardt steps on the view's 2D reprojection error plus 0.3 times the
     mean squared distance of the canonical shape's points to Phi's
-    (``model.test_time_refine_iters``, ``model.test_time_refine_prior``; evidence:
+    (``inference.refine_iters``, ``inference.refine_prior``; evidence:
     experiments/dev_suite, "Refining the regressed camera and coefficients at test time")."""
-    c.model.test_time_refine_iters, c.model.test_time_refine_prior = 20, 0.3
+    c.inference.refine_iters, c.inference.refine_prior = 20, 0.3
     return c
 
 
@@ -159,7 +163,7 @@ def apply_variants(c: ml_collections.ConfigDict, arg: str | None) -> ml_collecti
         for term in losses.RAMPED_TERMS:  # no ramps: constant weights
             c.loss[f"w_{term}_final"], c.loss[f"{term}_ramp"] = None, ()
         c.model.canonicalization = False
-        c.model.test_time_refine_iters = 0
+        c.inference.refine_iters = 0
     if "base" in words:
         c.model.z_equivariance = False
         c.model.canonicalization = False

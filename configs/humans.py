@@ -10,7 +10,7 @@ surface points (``model.n_keypoints`` follows: 17 + 300).
 CPU-sized networks and Adam (configs.default.cpu_recipe) with a 3x canonicalisation
 weight (see below); the method is the paper's. At inference each view's camera and
 coefficients are refined from Phi's output (``default.refined_inference``; its evidence is
-experiments/dev_suite's). ``--config.model.test_time_refine_iters=0`` gives Phi's single
+experiments/dev_suite's). ``--config.inference.refine_iters=0`` gives Phi's single
 pass, with which the stored 10,000-step runs of this config end at test MPJPE 0.111-0.115
 in seeds 0-2 (experiments/time_to_accuracy/results/humans__cpu__s*.json).
 """

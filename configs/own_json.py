@@ -20,31 +20,31 @@ mirror images, a state the training never left (experiments/dev_suite, eleventh 
 Also not in the paper, at inference only: Phi's camera and shape coefficients for each
 view are the start of 20 Levenberg-Marquardt steps on the view's 2D reprojection error plus
 0.3 times the mean squared distance of the canonical shape's points to Phi's
-(``model.test_time_refine_iters``, ``model.test_time_refine_prior``). Against the median
+(``inference.refine_iters``, ``inference.refine_prior``). Against the median
 depth over 32 copies turned in-plane (experiments/dev_suite's ``union32``): 7.7% lower test
 error on average over 27 runs of experiments/dev_suite not used to choose it (seeds 3-5),
 25% on the nearly rigid face (whose regressed camera was what it lost against a rigid
 fit), 2% higher on CMU 131's 17 joints (the section "Refining the regressed camera and
 coefficients at test time" there).
-``--config.model.test_time_refine_iters=0`` gives Phi's own output (the release's single
-pass); with it, ``--config.model.test_time_turns=32
---config.model.test_time_turn_span=circle_and_range`` gives the 32 turned copies.
-Handedness at inference (``model.test_time_handedness_reference="auto"``): when the points
+``--config.inference.refine_iters=0`` gives Phi's own output (the release's single
+pass); with it, ``--config.inference.turns=32
+--config.inference.turn_span=circle_and_range`` gives the 32 turned copies.
+Handedness at inference (``inference.handedness_reference="auto"``): when the points
 are those of people in Human3.6M's 17-joint order or in COCO's 17 keypoints (a human body's
-projections fit the training views, ``train.resolve_handedness``), every view gets that
+projections fit the training views, ``resolve.resolve_handedness``), every view gets that
 body's handedness, so the reconstructions are not mirror images (CMU 131: error without the
 protocol's flip 0.08 instead of 0.35-0.58; the flip-resolved error unchanged;
 experiments/dev_suite, "The handedness of a human body"); other points keep the model's
 own, view by view.
-``--config.model.test_time_handedness_reference=mean_shape`` turns it off;
-``--config.model.test_time_handedness_reference=my_body.npy`` (or .json, .txt, .csv: one 3D
+``--config.inference.handedness_reference=mean_shape`` turns it off;
+``--config.inference.handedness_reference=my_body.npy`` (or .json, .txt, .csv: one 3D
 example of your points, N rows of x, y, z, any pose, orientation and scale) gives every
 view that example's handedness, weighed with the model's mean shape given it, for points in
 any order (experiments/dev_suite, "The handedness from one 3D example").
 Subjects at different distances (``model.keypoint_scaling="auto"``: training views that
 look alike differ in size by more than 1.18x, median, as for people photographed at
 different distances, not a subject filmed at one) get each view scaled by its own size
-before Phi and its reconstruction scaled back (``train.resolve_keypoint_scaling``;
+before Phi and its reconstruction scaled back (``resolve.resolve_keypoint_scaling``;
 experiments/dev_suite, "People at different distances"); other data keep one input scale for
 every view, which is much better there. ``--config.model.keypoint_scaling=global`` or
 ``per_view`` sets it.
@@ -63,9 +63,9 @@ def get_config(arg=None):
     c.optim.warmup_steps = 500
     default.refined_inference(c)
     # People in Human3.6M's or COCO's 17-joint order get a human body's handedness at
-    # inference (train.resolve_handedness); other points the mean shape's, as before.
-    c.model.test_time_handedness_reference = "auto"
+    # inference (resolve.resolve_handedness); other points the mean shape's, as before.
+    c.inference.handedness_reference = "auto"
     # Subjects at different distances get each view scaled by its own size
-    # (train.resolve_keypoint_scaling); others one input scale, as before.
+    # (resolve.resolve_keypoint_scaling); others one input scale, as before.
     c.model.keypoint_scaling = "auto"
     return default.apply_variants(c, arg)

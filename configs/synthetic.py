@@ -12,7 +12,7 @@ losses, Phi and Psi) is the paper's. At inference each view's camera and coeffic
 refined from Phi's output, as for your own data (configs/own_json.py;
 ``default.refined_inference``): on this dataset it lowers the test error from 0.069-0.078
 to 0.039-0.051 in seeds 0-2 (experiments/synthetic).
-``--config.model.test_time_refine_iters=0`` gives Phi's own output (the release's).
+``--config.inference.refine_iters=0`` gives Phi's own output (the release's).
 """
 
 from configs import default

@@ -5,8 +5,9 @@ import math
 import os
 import subprocess
 import sys
+from functools import partial
 
-from c3dpo_jax import benchmark, model
+from c3dpo_jax import benchmark, lift, model
 
 TINY = [
     "--config.model.n_keypoints=8", "--config.model.shape_basis_size=3",
@@ -86,17 +87,18 @@ def test_matmul_precision_option_runs_and_stays_close():
     variables = model.init_variables(jax.random.key(0), cfg)
     data = jax.device_put(benchmark.random_data(cfg, 4))
     args = (data["kp"][0], data["vis"][0], data["class_mask"][0], None)
-    ref = jax.jit(model.forward_eval, static_argnames="cfg")(variables, *args, cfg=cfg)
+    forward_eval = partial(lift.forward_eval, body=None, options=lift.InferenceConfig())
+    ref = jax.jit(forward_eval, static_argnames="cfg")(variables, *args, cfg=cfg)
     low = dataclasses.replace(cfg, matmul_precision="bfloat16")
-    out = jax.jit(model.forward_eval, static_argnames="cfg")(variables, *args, cfg=low)
+    out = jax.jit(forward_eval, static_argnames="cfg")(variables, *args, cfg=low)
     ref, out = ref["shape_canonical"], out["shape_canonical"]
     # The trunks' products take bfloat16 operands on every backend (CPU included), so
     # the result moves, a little; the output and the parameters stay float32.
     assert out.dtype == ref.dtype == np.float32
     assert not np.array_equal(out, ref)
     np.testing.assert_allclose(out, ref, rtol=0.05, atol=1e-3)
-    jaxpr = str(jax.make_jaxpr(lambda v: model.forward_eval(v, *args, cfg=low))(variables))
+    jaxpr = str(jax.make_jaxpr(lambda v: forward_eval(v, *args, cfg=low))(variables))
     assert "bf16" in jaxpr and "bf16" not in str(jax.make_jaxpr(
-        lambda v: model.forward_eval(v, *args, cfg=cfg))(variables))
+        lambda v: forward_eval(v, *args, cfg=cfg))(variables))
     with pytest.raises(ValueError, match="matmul_precision"):
-        model.forward_eval(variables, *args, cfg=dataclasses.replace(cfg, matmul_precision="x"))
+        forward_eval(variables, *args, cfg=dataclasses.replace(cfg, matmul_precision="x"))

@@ -231,8 +231,8 @@ def test_a_config_override_naming_no_section_names_the_flag_and_the_sections(
     # config_flags alone: 'missing key "'foo'"'.
     assert _main_refuses(tmp_path, smoke_subprocess_env(), "--config=configs/synthetic.py:smoke",
                          "--config.foo.bar=1") == (
-        "error: --config.foo.bar: the config has no section 'foo'; its sections: data, loss, "
-        "model, optim, train\n")
+        "error: --config.foo.bar: the config has no section 'foo'; its sections: data, "
+        "inference, loss, model, optim, train\n")
 
 
 def test_a_config_override_without_a_config_asks_for_one(tmp_path, smoke_subprocess_env):
@@ -249,13 +249,18 @@ def test_what_a_config_override_names_that_is_not_there():
     assert problem("--config.model.n_keypoints=3", "--config.data.synthetic.seed=1") is None
     assert problem("--config.modl.n_keypoints=3") == (
         "--config.modl.n_keypoints: the config has no section 'modl' (did you mean 'model'?); "
-        "its sections: data, loss, model, optim, train")
+        "its sections: data, inference, loss, model, optim, train")
     assert problem("--config.data.synthetic.n_keypoint=3") == (
         "--config.data.synthetic.n_keypoint: config.data.synthetic has no field 'n_keypoint' "
         "(did you mean 'n_keypoints'?)")
     assert problem("--config.model.n_keypoints.x=3") == (
         "--config.model.n_keypoints.x: config.model.n_keypoints is a value, not a section "
         "with fields")
+    # An inference option set in the model section (test_time_*): the line names its field.
+    assert problem("--config.model.test_time_refine_iters=0") == (
+        "--config.model.test_time_refine_iters: config.model.test_time_refine_iters is now "
+        "config.inference.refine_iters")
+    assert problem("--config.inference.refine_iters=0") is None
 
 
 def test_the_results_table_names_what_was_trained():

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from c3dpo_jax import convert, losses, model
+from c3dpo_jax import convert, lift, losses, model
 from c3dpo_jax.networks import C3DPONet
 from c3dpo_jax.reconstruct import load, reconstruct, save_workdir
 
@@ -40,7 +40,8 @@ def _t(a):
 def phi_outputs(fixture, converted):
     kp, vis = _t(fixture["kp_loc"]), fixture["kp_vis"]
     def fn(k, v):
-        return model.forward_eval(converted.variables, k, v, jnp.ones(17), None, converted.config)
+        return lift.forward_eval(converted.variables, k, v, jnp.ones(17), None, None,
+                                 converted.config, converted.inference)
 
     return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(fn))(kp, vis).items()}
 
@@ -51,6 +52,9 @@ def test_release_options_map_to_model_config(fixture, converted):
     assert sizes == (17, 10, 128, 2)
     assert (cfg.canonicalization_n_layers, cfg.canonicalization_n_fully_connected) == (2, 128)
     assert cfg.canonicalization and not cfg.argmin_translation
+    assert converted.inference == lift.InferenceConfig()  # the release's inference
+    assert not convert.inference_from_official(
+        {"replace_keypoints_with_input": False}).replace_keypoints_with_input
 
 
 def test_unknown_release_options_are_rejected_by_name():
@@ -82,13 +86,13 @@ def test_converted_model_reproduces_rotation_dependent_outputs(fixture, phi_outp
     np.testing.assert_allclose(out["rotation"], fixture["out/phi/R"], atol=ROT_TOL)
     np.testing.assert_allclose(out["shape_camera"], _t(fixture["out/phi/shape_camera_coord"]),
                                atol=ROT_TOL)
-    np.testing.assert_allclose(out["shape_image_coord"], _t(fixture["out/shape_image_coord"]),
+    np.testing.assert_allclose(out["shape_3d"], _t(fixture["out/shape_image_coord"]),
                                atol=ROT_TOL)
     # The release's normalised reprojection; its "image" version has visible points
-    # replaced by the input, i.e. the xy of shape_image_coord.
+    # replaced by the input, i.e. the xy of shape_3d (the release's shape_image_coord).
     np.testing.assert_allclose(out["kp_reprojected"] - out["kp_mean"][:, None],
                                _t(fixture["out/kp_reprojected"]), atol=ROT_TOL)
-    np.testing.assert_allclose(out["shape_image_coord"][..., :2],
+    np.testing.assert_allclose(out["shape_3d"][..., :2],
                                _t(fixture["out/kp_reprojected_image"]), atol=ROT_TOL)
     vis = fixture["kp_vis"]
     repro = losses.huber(jnp.asarray(out["dist_sq"]), 0.01)  # the release's huber_scaling

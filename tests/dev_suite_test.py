@@ -47,7 +47,7 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
         config = json.load(f)
     assert config["optim"]["lr"] == 0.001 and config["model"]["n_keypoints"] == 9
     assert config["model"]["keypoint_rescale"] > 0  # own_json's 0 ("auto") resolved, saved
-    assert config["model"]["test_time_handedness_reference"] == "mean_shape"  # 9 points
+    assert config["inference"]["handedness_reference"] == "mean_shape"  # 9 points
     assert config["model"]["keypoint_scaling"] == "global"  # one distance: one input scale
     with open(workdir / "eval_results.json") as f:
         res = json.load(f)
@@ -456,7 +456,7 @@ data = KeypointData(kp=canon[..., :2].astype(np.float32), vis=np.ones((6, 6), np
 mirrored = canon.copy()
 mirrored[1, :, 2] *= -1  # one view given its mirror image, canonical shape and depth
 flags = np.zeros(6)
-pred = dict(shape_canonical=mirrored, shape_image_coord=mirrored, kp_reprojected=canon[..., :2],
+pred = dict(shape_canonical=mirrored, shape_3d=mirrored, kp_reprojected=canon[..., :2],
             kp_scale=np.ones(6), alpha=np.zeros((6, 2)), handedness_flipped=flags)
 flagged = diagnose.measure(dict(pred, handedness_flipped=np.eye(6)[1]), data, 3, "default")
 unflagged = diagnose.measure(pred, data, 3, "default")

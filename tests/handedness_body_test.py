@@ -1,7 +1,7 @@
 """A body of the user's own points for the handedness at inference: one 3D example of the
 points, from an array or a file, in any position, orientation and scale, gives the model's
 mean shape its handedness and every view the mean shape's
-(``model.test_time_handedness_reference="body"``)."""
+(``inference.handedness_reference="body"``)."""
 
 import dataclasses
 import json
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from c3dpo_jax import C3DPOParams, model, reconstruct, train
-from c3dpo_jax.data import KeypointData
+from c3dpo_jax import C3DPOParams, lift, model, reconstruct, resolve, train
+from c3dpo_jax.data import KeypointData, bodies
 from configs import default
 
 K = 9
@@ -44,8 +44,7 @@ def _variables(seed, mean_shape):
     params = jax.tree.map(lambda a: a, variables["params"])
     for layout in (mean_shape, mean_shape.T):  # the basis' layout of the flat bias
         params["shape_layer"]["bias"] = jnp.asarray(layout.reshape(-1), jnp.float32)
-        got = model._shape(model.make_network(CFG), params, jnp.zeros(CFG.shape_basis_size),
-                           jnp.ones(K))
+        got = model.mean_shape(model.make_network(CFG), params, jnp.ones(K))
         if np.allclose(got, mean_shape, atol=1e-6):
             return dict(variables, params=params)
     raise AssertionError("the mean shape is not the shape layer's bias")
@@ -57,54 +56,60 @@ def test_the_mean_shape_takes_the_body_s_handedness_in_any_pose_orientation_and_
     moved and scaled, and the mirror image for the body's mirror image."""
     variables = _variables(0, _rig(7))
     net = model.make_network(CFG)
-    mean = np.asarray(model.mean_shape_handed_as(
+    mean = np.asarray(lift.mean_shape_handed_as(
         net, variables["params"], jnp.ones(K), jnp.asarray(_rig(), jnp.float32)), np.float64)
     assert _orthogonal_residual(mean, _rig(), True) < _orthogonal_residual(mean, _rig(), False)
     moved = 3.0 * _rig() @ Rotation.random(random_state=5).as_matrix().T + [4.0, -2.0, 7.0]
     for body, sign in ((moved, 1.0), (_rig() * [1.0, 1.0, -1.0], -1.0)):
-        got = model.mean_shape_handed_as(net, variables["params"], jnp.ones(K),
+        got = lift.mean_shape_handed_as(net, variables["params"], jnp.ones(K),
                                          jnp.asarray(body, jnp.float32))
         np.testing.assert_allclose(got, mean * [1.0, 1.0, sign], atol=1e-6)
     # Whichever handedness the mean shape came out with, it ends with the body's.
     for seed in range(1, 6):
         v = _variables(seed, _rig(seed + 7) * np.array([1.0, 1.0, -1.0]) ** seed)
-        m = np.asarray(model.mean_shape_handed_as(net, v["params"], jnp.ones(K),
+        m = np.asarray(lift.mean_shape_handed_as(net, v["params"], jnp.ones(K),
                                                   jnp.asarray(_rig(), jnp.float32)))
         assert _orthogonal_residual(m, _rig(), True) < _orthogonal_residual(m, _rig(), False)
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"test_time_handedness_reference": "body"}, r"test_time_handedness_body is empty"),
-    ({"test_time_handedness_reference": "body", "test_time_handedness_body": ((0, 0, 1),) * K},
+    ({"handedness_reference": "body"}, r"handedness_body is empty"),
+    ({"handedness_reference": "body", "handedness_body": ((0, 0, 1),) * K},
      r"near one plane"),
-    ({"test_time_handedness_reference": "body",
-      "test_time_handedness_body": tuple(map(tuple, _rig()[:5]))},
+    ({"handedness_reference": "body",
+      "handedness_body": tuple(map(tuple, _rig()[:5]))},
      r"a body of the model's 9 points, N rows of \(x, y, z\); got shape \(5, 3\)"),
-    ({"test_time_handedness_reference": "body",
-      "test_time_handedness_body": tuple(map(tuple, np.where(np.eye(K, 3) > 0, np.nan,
-                                                              _rig())))},
+    ({"handedness_reference": "body",
+      "handedness_body": tuple(map(tuple, np.where(np.eye(K, 3) > 0, np.nan,
+                                                    _rig())))},
      r"the body has NaN or inf"),
-    ({"test_time_handedness_body": tuple(map(tuple, _rig()))},
-     r"test_time_handedness_body is given but test_time_handedness_reference is "
+    ({"handedness_body": tuple(map(tuple, _rig()))},
+     r"handedness_body is given but handedness_reference is "
      r"'mean_shape', not 'body'"),
-    ({"test_time_handedness_reference": "my_rig.npy"},
-     r"a body file is read when training starts"),
-    ({"test_time_handedness_reference": "body", "test_time_handedness_body": (1, 2, 3)},
-     r"test_time_handedness_body=\(1, 2, 3\) \(rows of three numbers\)"),
+    ({"handedness_reference": "body", "handedness_body": (1, 2, 3)},
+     r"handedness_body=\(1, 2, 3\) \(rows of three numbers\)"),
 ])
 def test_a_body_that_cannot_give_a_handedness_is_refused_in_one_line(change, message):
-    settings = dict(test_time_one_handedness=True, **change)
+    base = lift.InferenceConfig(one_handedness=True)
     with pytest.raises(ValueError, match=message):
-        dataclasses.replace(CFG, **settings)
+        lift.inference_config(CFG, dataclasses.replace(base, **change))
+
+
+def test_a_body_file_in_an_inference_config_is_read_on_the_host(tmp_path):
+    """A body file named as the reference (a training config's, before it is resolved into
+    "body") is read where the body is resolved, ``lift.reference_body``."""
+    path = tmp_path / "rig.npy"
+    np.save(path, _rig())
+    options = lift.InferenceConfig(one_handedness=True, handedness_reference=str(path))
+    np.testing.assert_allclose(lift.options_body(options), _rig().astype(np.float32))
 
 
 def test_a_model_keeps_its_body_through_a_saved_config():
     """The saved config (JSON: lists) gives back the same, hashable, config."""
-    cfg = dataclasses.replace(CFG, test_time_one_handedness=True,
-                              test_time_handedness_reference="body",
-                              test_time_handedness_body=tuple(map(tuple, _rig().tolist())))
-    again = model.ModelConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
-    assert again == cfg and hash(again) == hash(cfg)
+    options = lift.InferenceConfig(one_handedness=True, handedness_reference="body",
+                                   handedness_body=tuple(map(tuple, _rig().tolist())))
+    again = lift.InferenceConfig.from_dict(json.loads(json.dumps(options.to_dict())))
+    assert again == options and hash(again) == hash(options)
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".json", ".txt", ".csv"])
@@ -119,7 +124,7 @@ def test_a_body_file_is_read_and_a_bad_one_named(tmp_path, suffix):
         sep = "," if suffix == ".csv" else " "
         path.write_text("\n".join(sep.join(repr(v) for v in row) for row in body.tolist())
                         + "\n")
-    np.testing.assert_array_equal(model.read_body(str(path)), body)
+    np.testing.assert_array_equal(bodies.read_body(str(path)), body)
     bad = tmp_path / f"bad{suffix}"
     if suffix == ".npy":
         np.save(bad, body[:, :2])
@@ -128,32 +133,35 @@ def test_a_body_file_is_read_and_a_bad_one_named(tmp_path, suffix):
         bad.write_text("[[1, 2, 3], [4, 5]]" if suffix == ".json" else "1 2 3\n4 five 6\n")
         expected = r"is not N rows of \(x, y, z\)"
     with pytest.raises(ValueError, match=f"body file '.*bad{suffix}' {expected}"):
-        model.read_body(str(bad))
+        bodies.read_body(str(bad))
     with pytest.raises(ValueError, match="does not exist"):
-        model.read_body(str(tmp_path / f"missing{suffix}"))
+        bodies.read_body(str(tmp_path / f"missing{suffix}"))
 
 
 def test_training_reads_the_body_file_into_the_model(tmp_path):
-    """``train.resolve_handedness``: a body file named in the config becomes the model's
-    "body" with one handedness on; a resumed run keeps the body it started with; a body of
-    another number of points is refused in one line."""
+    """``resolve.resolve_handedness``: a body file named in the config becomes the model's
+    "body" with one handedness on; a resumed run keeps the body it started with (also one
+    saved in its model section); a body of another number of points is refused in one
+    line."""
     path = tmp_path / "rig.npy"
     np.save(path, _rig())
     c = default.get_config()
     c.model.n_keypoints = K
-    c.model.test_time_handedness_reference = str(path)
+    c.inference.handedness_reference = str(path)
     data = KeypointData(kp=np.zeros((4, K, 2)), vis=np.ones((4, K)))  # not read for a file
-    got = train.resolve_handedness(c, data).model
-    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("body", True)
-    np.testing.assert_allclose(np.asarray(got.test_time_handedness_body), _rig())
-    model.ModelConfig.from_dict(got)  # a valid model config
-    earlier = {"model": {"test_time_handedness_reference": "body",
-                         "test_time_handedness_body": _rig(1).tolist()}}
-    kept = train.resolve_handedness(c, data, earlier).model
-    np.testing.assert_allclose(np.asarray(kept.test_time_handedness_body), _rig(1))
+    got = resolve.resolve_handedness(c, data).inference
+    assert (got.handedness_reference, got.one_handedness) == ("body", True)
+    np.testing.assert_allclose(np.asarray(got.handedness_body), _rig())
+    lift.inference_config(CFG, lift.InferenceConfig.from_dict(got))  # a valid config
+    for earlier in ({"inference": {"handedness_reference": "body",
+                                   "handedness_body": _rig(1).tolist()}},
+                    {"model": {"test_time_handedness_reference": "body",
+                               "test_time_handedness_body": _rig(1).tolist()}}):
+        kept = resolve.resolve_handedness(c, data, earlier).inference
+        np.testing.assert_allclose(np.asarray(kept.handedness_body), _rig(1))
     c.model.n_keypoints = K + 1
     with pytest.raises(ValueError, match=r"rig.npy' \(a body of the model's 10 points"):
-        train.resolve_handedness(c, data)
+        resolve.resolve_handedness(c, data)
 
 
 def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
@@ -181,7 +189,7 @@ def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
                                atol=1e-5)
     # Each view is mirrored when the sum, over the body and the mean shape handed as the
     # body, of (mirror residual - proper residual) / their sum is negative (numpy's SVD).
-    mean = np.asarray(model.mean_shape_handed_as(model.make_network(CFG), variables["params"],
+    mean = np.asarray(lift.mean_shape_handed_as(model.make_network(CFG), variables["params"],
                                                  jnp.ones(K), jnp.asarray(body, jnp.float32)))
     assert _orthogonal_residual(mean, body, True) < _orthogonal_residual(mean, body, False)
 
@@ -198,7 +206,7 @@ def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
         np.testing.assert_allclose(x_on, x_own * ([1.0, 1.0, -1.0] if mirrored else 1.0),
                                    atol=1e-5)
     assert len(set(flips)) == 2  # views of both kinds: the rule is seen at work
-    with pytest.raises(ValueError, match=r"^handedness_reference: the body's points lie near"):
+    with pytest.raises(ValueError, match=r"^handedness_body \(the body's points lie near"):
         reconstruct(params, kp, vis, handedness_reference=np.zeros((K, 3)) + [0, 0, 1])
 
 
@@ -212,7 +220,7 @@ def test_a_run_given_a_body_file_keeps_the_body_and_resumes(tmp_path):
     c = default.apply_variants(default.get_config(), "smoke")
     c.model.n_keypoints = c.data.synthetic.n_keypoints = 8
     c.model.shape_basis_size = 3
-    c.model.test_time_handedness_reference = str(tmp_path / "rig.npy")
+    c.inference.handedness_reference = str(tmp_path / "rig.npy")
     c.train.ckpt_every, c.train.progress_bar = 5, False
     c.train.num_steps = 5
     train.train_and_evaluate(c, str(tmp_path / "run"))
@@ -220,9 +228,9 @@ def test_a_run_given_a_body_file_keeps_the_body_and_resumes(tmp_path):
     c.train.num_steps = 10
     out = train.train_and_evaluate(c, str(tmp_path / "run"))
     assert out["final"]["step"] == 10
-    got = c3dpo_jax.load(str(tmp_path / "run")).config
-    assert (got.test_time_handedness_reference, got.test_time_one_handedness) == ("body", True)
-    np.testing.assert_allclose(np.asarray(got.test_time_handedness_body), body)
+    got = c3dpo_jax.load(str(tmp_path / "run")).inference
+    assert (got.handedness_reference, got.one_handedness) == ("body", True)
+    np.testing.assert_allclose(np.asarray(got.handedness_body), body)
 
 
 def test_c3dpo_predict_takes_a_body_file(tmp_path):

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from c3dpo_jax import inference, model
+from c3dpo_jax import inference, lift, model
 from c3dpo_jax.data import synthetic
 
 CFG = model.ModelConfig(n_keypoints=6, shape_basis_size=2, n_fully_connected=16, n_layers=1,
@@ -24,12 +24,13 @@ def test_split_in_padded_batches_equals_the_per_example_model():
     data = synthetic.make_split(7, n_keypoints=6, n_modes=2, deformation=0.3, occlusion=0.2,
                                 noise=0.0, perspective=False, shape_seed=0, seed=1)
     variables = model.init_variables(jax.random.key(0), CFG)
-    pred = inference.predict_split(variables, data, CFG, batch_size=3)  # 3 + 3 + 1 padded
+    options = lift.InferenceConfig()
+    pred = inference.predict_split(variables, data, CFG, options, batch_size=3)  # 3 + 3 + 1
     inputs = data.model_inputs()
-    one = jax.jit(partial(model.forward_eval, variables, cfg=CFG))
+    one = jax.jit(partial(lift.forward_eval, variables, cfg=CFG, options=options))
     for i in range(len(data)):
         ref = one(jnp.asarray(inputs["kp"][i]), jnp.asarray(inputs["vis"][i]),
-                  jnp.asarray(inputs["class_mask"][i]), None)
-        for name in ("shape_image_coord", "alpha", "kp_reprojected"):
+                  jnp.asarray(inputs["class_mask"][i]), None, None)
+        for name in ("shape_3d", "alpha", "kp_reprojected"):
             assert pred[name].shape[0] == 7
             np.testing.assert_allclose(pred[name][i], ref[name], rtol=1e-5, atol=1e-5)

@@ -18,7 +18,7 @@ def test_training_with_the_3d_truth_learns_the_depth_sign(tmp_path):
     c = _small(synthetic.get_config())
     c.loss.update(w_supervised=1.0, w_reprojection=0.0, w_canonicalization=0.0)
     c.model.canonicalization = False
-    c.model.test_time_refine_iters = 0  # what the network learnt, not a refinement of it
+    c.inference.refine_iters = 0  # what the network learnt, not a refinement of it
     c.train.update(batch_size=128, num_steps=500, eval_every_epochs=0, progress_bar=False,
                    ckpt_every=500)
     results = train.train_and_evaluate(c, str(tmp_path))

@@ -1,4 +1,5 @@
-"""The per-example forward passes: wiring, masking, zero loss at a perfect fit."""
+"""The per-example forward passes: wiring, masking, zero loss at a perfect fit (the eval
+pass's inference options: lift_test)."""
 
 import dataclasses
 from functools import partial
@@ -8,14 +9,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from c3dpo_jax import evaluation, inference, losses, model
-from c3dpo_jax.data import KeypointData, synthetic
+from c3dpo_jax import lift, losses, model
+from c3dpo_jax.data import synthetic
 
 CFG = model.ModelConfig(
     n_keypoints=8, shape_basis_size=3, n_fully_connected=16, n_layers=1,
     canonicalization_n_fully_connected=16, canonicalization_n_layers=1, n_rand_samples=3,
     argmin_translation=True,
 )
+ONE_PASS = lift.InferenceConfig()  # the release's inference
 
 
 def _batch(n=6, seed=0):
@@ -58,8 +60,8 @@ def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
     terms, _ = _train_terms(cfg, variables, batch, key)
     np.testing.assert_allclose(terms["dist_sq"] * vis, 0.0, atol=1e-5)
     np.testing.assert_allclose(terms["canon_dist_sq"], 0.0, atol=1e-6)  # Psi undoes any rotation
-    out = model.forward_eval(variables, kp[0], vis[0], jnp.ones(8), None, cfg)
-    np.testing.assert_allclose(out["shape_image_coord"][:, 2], shape[:, 2] - 0.0, atol=1e-5)
+    out = lift.forward_eval(variables, kp[0], vis[0], jnp.ones(8), None, None, cfg, ONE_PASS)
+    np.testing.assert_allclose(out["shape_3d"][:, 2], shape[:, 2] - 0.0, atol=1e-5)
 
 
 @pytest.mark.parametrize("variant", [
@@ -83,16 +85,16 @@ def test_invisible_coordinates_change_nothing_in_training(key, variant):
 def test_eval_keeps_visible_input_points_and_is_batch_independent():
     variables = model.init_variables(jax.random.key(2), CFG)
     data, batch = _batch(seed=3)
-    outs = jax.vmap(partial(model.forward_eval, variables, cfg=CFG), in_axes=(0, 0, 0, None))(
-        batch["kp"], batch["vis"], batch["class_mask"], None)
+    outs = jax.vmap(partial(lift.forward_eval, variables, body=None, cfg=CFG, options=ONE_PASS),
+                    in_axes=(0, 0, 0, None))(batch["kp"], batch["vis"], batch["class_mask"], None)
     vis = data.vis > 0
     np.testing.assert_allclose(
-        np.asarray(outs["shape_image_coord"])[..., :2][vis], data.kp[vis], atol=1e-5
+        np.asarray(outs["shape_3d"])[..., :2][vis], data.kp[vis], atol=1e-5
     )
-    single = jax.jit(model.forward_eval, static_argnums=5)(
-        variables, batch["kp"][2], batch["vis"][2], batch["class_mask"][2], None, CFG
-    )
-    np.testing.assert_allclose(single["shape_image_coord"], outs["shape_image_coord"][2], atol=1e-5)
+    single = jax.jit(lift.forward_eval, static_argnums=(6, 7))(
+        variables, batch["kp"][2], batch["vis"][2], batch["class_mask"][2], None, None, CFG,
+        ONE_PASS)
+    np.testing.assert_allclose(single["shape_3d"], outs["shape_3d"][2], atol=1e-5)
     assert outs["rotation"].shape == (6, 3, 3) and outs["alpha"].shape == (6, 3)
 
 
@@ -100,7 +102,8 @@ def test_perspective_model_requires_intrinsics():
     cfg = dataclasses.replace(CFG, projection_type="perspective")
     variables = model.init_variables(jax.random.key(0), cfg)
     with pytest.raises(ValueError, match="intrinsics"):
-        model.forward_eval(variables, jnp.zeros((8, 2)), jnp.ones(8), jnp.ones(8), None, cfg)
+        lift.forward_eval(variables, jnp.zeros((8, 2)), jnp.ones(8), jnp.ones(8), None, None,
+                          cfg, ONE_PASS)
 
 
 def test_an_unresolved_input_scale_is_refused_not_trained_on_zeros():
@@ -108,8 +111,9 @@ def test_an_unresolved_input_scale_is_refused_not_trained_on_zeros():
     # resolves it, a hand-made step must too.
     cfg = dataclasses.replace(CFG, keypoint_rescale=0.0)
     variables = model.init_variables(jax.random.key(0), cfg)
-    with pytest.raises(ValueError, match=r"keypoint_rescale=0 .*\(train\.resolve_input_scale"):
-        model.forward_eval(variables, jnp.ones((8, 2)), jnp.ones(8), jnp.ones(8), None, cfg)
+    with pytest.raises(ValueError, match=r"keypoint_rescale=0 .*\(resolve\.resolve_input_scale"):
+        lift.forward_eval(variables, jnp.ones((8, 2)), jnp.ones(8), jnp.ones(8), None, None,
+                          cfg, ONE_PASS)
 
 
 def test_unknown_model_options_are_rejected():
@@ -130,51 +134,15 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     cfg = dataclasses.replace(CFG, matmul_precision="highest")
     variables = model.init_variables(jax.random.key(0), cfg)
     _, batch = _batch()
-    jax.jit(model.forward_eval, static_argnums=5)(  # the config passed positionally
-        variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None, cfg)
+    jax.jit(lift.forward_eval, static_argnums=(6, 7))(  # the configs passed positionally
+        variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None, None, cfg,
+        ONE_PASS)
     fn = partial(model.forward_train, variables, cfg=cfg)
     keys = jax.random.split(jax.random.key(1), 6)
     rotations = jax.vmap(partial(losses.draw_rotations, cfg=cfg))(keys)
     jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, 0), axis_name="batch"))(
         batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
     assert seen == ["highest", "highest"]
-
-
-def _turned_numpy(cfg, variables, kp, vis, turns, span="augmentation", keep_ratio=1.1):
-    """Independent of ``model._turned_depth``: each view turned in numpy about its visible
-    centroid, one single-copy pass per angle, signs matched and the median taken in numpy
-    over the copies kept: every one ("augmentation"), those whose mean 2D distance to their
-    turned input is within ``keep_ratio`` of the view's lowest ("circle"), or those and the
-    copies turned by at most ``z_augment_rot_angle`` ("circle_and_range")."""
-    one = dataclasses.replace(cfg, test_time_turns=1)
-    k = (turns - 1) // 2
-    angles = [0.0] + [sign * cfg.z_augment_rot_angle * i / k for sign in (1, -1)
-                      for i in range(1, k + 1)]
-    if span != "augmentation":
-        angles = [2 * np.pi * i / turns for i in range(turns)]
-    kp, vis = np.asarray(kp, np.float64), np.asarray(vis, np.float64)
-    centre = (kp * vis[..., None]).sum(1, keepdims=True) / vis.sum(1)[:, None, None]
-    depths, fits = [], []
-    for a in angles:
-        turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        turned = (kp - centre) @ turn.T + centre
-        out = jax.vmap(partial(model.forward_eval, variables, cfg=one), in_axes=(0, 0, 0, None))(
-            jnp.asarray(turned, jnp.float32), jnp.asarray(vis), jnp.ones(vis.shape), None)
-        depths.append(np.asarray(out["shape_camera"][..., 2], np.float64))
-        dist = np.linalg.norm(np.asarray(out["kp_reprojected"], np.float64) - turned, axis=-1)
-        fits.append((dist * vis).sum(1) / vis.sum(1))
-    means = [(d * vis).sum(1, keepdims=True) / vis.sum(1, keepdims=True) for d in depths]
-    centred = np.array([d - m for d, m in zip(depths, means)])
-    agree = np.einsum("amn,mn->am", centred * vis, centred[0])
-    matched = np.where(agree[..., None] < 0, -centred, centred)
-    in_range = np.array([min(a, 2 * np.pi - a) <= cfg.z_augment_rot_angle + 1e-3
-                         for a in np.abs(angles)])
-    keep = {"augmentation": np.ones_like(agree, bool),
-            "circle": np.array(fits) <= keep_ratio * np.min(fits, 0),
-            "circle_and_range": (np.array(fits) <= keep_ratio * np.min(fits, 0))
-            | in_range[:, None]}[span]
-    median = np.nanmedian(np.where(keep[..., None], matched, np.nan), 0)
-    return median + means[0], centred, agree, keep
 
 
 def _input_dependent_variables(cfg):
@@ -187,17 +155,10 @@ def _input_dependent_variables(cfg):
     return variables
 
 
-def _evaluated(cfg, seed):
-    """``(variables, data, out)``: input-dependent variables, a batch's data and the jitted
-    eval pass of ``cfg`` on the batch."""
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=seed)
-    return variables, data, _eval(cfg, variables, batch["kp"], batch["vis"])
-
-
 def _eval(cfg, variables, kp, vis):
-    """The jitted eval pass of ``cfg`` on a batch (every point in the class)."""
-    return jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg),
+    """The jitted eval pass of ``cfg`` (one pass) on a batch (every point in the class)."""
+    return jax.jit(jax.vmap(partial(lift.forward_eval, variables, body=None, cfg=cfg,
+                                    options=ONE_PASS),
                             in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
 
 
@@ -219,15 +180,15 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     np.testing.assert_allclose(b["kp_scale"], a["kp_scale"] / np.asarray(s)[:, 0, 0], rtol=1e-5)
     shown = np.asarray(vis)[..., None]  # hidden points' values are masked by the network
     np.testing.assert_allclose(b["kp_norm"] * shown, a["kp_norm"] * shown, atol=1e-5)
-    expected = np.asarray(a["shape_image_coord"]) * np.asarray(s)
+    expected = np.asarray(a["shape_3d"]) * np.asarray(s)
     expected[..., :2] += np.asarray(shift)
-    np.testing.assert_allclose(b["shape_image_coord"], expected, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(b["shape_3d"], expected, rtol=1e-4, atol=1e-4)
     hidden = jnp.where(vis[..., None] > 0, kp, 1e6)
-    np.testing.assert_allclose(_eval(cfg, variables, hidden, vis)["shape_image_coord"],
-                               a["shape_image_coord"], atol=1e-5)
+    np.testing.assert_allclose(_eval(cfg, variables, hidden, vis)["shape_3d"],
+                               a["shape_3d"], atol=1e-5)
     other_rescale = dataclasses.replace(cfg, keypoint_rescale=3.0)
-    np.testing.assert_allclose(_eval(other_rescale, variables, kp, vis)["shape_image_coord"],
-                               a["shape_image_coord"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(_eval(other_rescale, variables, kp, vis)["shape_3d"],
+                               a["shape_3d"], rtol=1e-4, atol=1e-5)
     terms_a, _ = _train_terms(cfg, variables, batch, key)
     terms_b, _ = _train_terms(cfg, variables, dict(batch, kp=kp * s + shift), key)
     np.testing.assert_allclose(terms_b["dist_sq"] * vis, terms_a["dist_sq"] * vis, rtol=1e-3,
@@ -236,7 +197,7 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     assert not np.allclose(_eval(plain, variables, kp * s, vis)["shape_canonical"],
                            _eval(plain, variables, kp, vis)["shape_canonical"], atol=1e-3)
     point = jnp.broadcast_to(kp[:1, :1], kp[:1].shape)
-    assert np.isfinite(np.asarray(_eval(cfg, variables, point, vis[:1])["shape_image_coord"])).all()
+    assert np.isfinite(np.asarray(_eval(cfg, variables, point, vis[:1])["shape_3d"])).all()
     with pytest.raises(ValueError, match=r"keypoint_scaling='per_view' \(must be 'global' or "
                        r"'auto' for a perspective model"):
         dataclasses.replace(cfg, projection_type="perspective")
@@ -245,323 +206,3 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
         dataclasses.replace(cfg, keypoint_scaling="each")
     with pytest.raises(ValueError, match=r"keypoint_scaling='auto' means 'from the training"):
         _eval(dataclasses.replace(cfg, keypoint_scaling="auto"), variables, kp, vis)
-
-
-def test_test_time_turns_give_the_median_depth_of_copies_turned_in_plane():
-    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5)
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=5)
-    fn = jax.jit(jax.vmap(partial(model.forward_eval, variables, cfg=cfg), in_axes=(0, 0, 0, None)))
-    turned = fn(batch["kp"], batch["vis"], batch["class_mask"], None)
-    want, copies, agree, _ = _turned_numpy(cfg, variables, data.kp, data.vis, 5)
-    # The copies differ (so the median matters), some with the other depth sign.
-    assert np.abs(copies - copies[0]).max() > 0.3 * np.abs(copies).max()
-    assert np.any(agree < 0)
-    np.testing.assert_allclose(turned["shape_camera"][..., 2], want, atol=2e-4)
-    np.testing.assert_allclose(turned["shape_image_coord"][..., 2], want / cfg.keypoint_rescale,
-                               atol=2e-4)
-    # Only the depth changes: the image x, y, the reprojection and the camera are the view's.
-    single = jax.vmap(partial(model.forward_eval, variables,
-                              cfg=dataclasses.replace(cfg, test_time_turns=1)),
-                      in_axes=(0, 0, 0, None))(batch["kp"], batch["vis"], batch["class_mask"],
-                                               None)
-    for name in ("kp_reprojected", "rotation", "alpha", "shape_canonical", "dist_sq"):
-        np.testing.assert_allclose(turned[name], single[name], atol=1e-5, err_msg=name)
-    np.testing.assert_allclose(turned["shape_image_coord"][..., :2],
-                               single["shape_image_coord"][..., :2], atol=1e-5)
-
-
-def test_turns_round_the_circle_keep_the_copies_that_fit_their_2d_input_best():
-    # Even turns and no in-plane augmentation are fine round the circle.
-    cfg = dataclasses.replace(CFG, z_augment=False, test_time_turns=8,
-                              test_time_turn_span="circle")
-    variables, data, out = _evaluated(cfg, seed=6)
-    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 8, span="circle")
-    # The choice matters: copies are left out, several are kept in some view, and the
-    # median of all the copies is another depth.
-    assert not keep.all() and keep.sum(0).max() > 1
-    every = _turned_numpy(cfg, variables, data.kp, data.vis, 8, span="circle",
-                          keep_ratio=np.inf)
-    assert np.abs(every[0] - want).max() > 1e-2
-    np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)
-
-
-def test_turns_round_the_circle_and_range_also_keep_every_copy_within_the_augmentation():
-    # 16 copies 22.5 degrees apart, range 0.4 rad: the unturned copy and +-22.5 degrees are
-    # always kept, beside the copies that fit their 2D input within 1.1x of the best.
-    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=16,
-                              test_time_turn_span="circle_and_range")
-    variables, data, out = _evaluated(cfg, seed=6)
-    want, _, _, keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
-                                     span="circle_and_range")
-    fit_only, _, _, fit_keep = _turned_numpy(cfg, variables, data.kp, data.vis, 16,
-                                             span="circle")
-    # The in-range copies matter: "circle" leaves some of them out, and its depth differs.
-    assert keep[[0, 1, 15]].all() and not fit_keep[[0, 1, 15]].all()
-    assert not keep.all() and np.abs(fit_only - want).max() > 1e-2
-    np.testing.assert_allclose(out["shape_camera"][..., 2], want, atol=2e-4)
-
-
-def _canonical_numpy(variables, alpha):
-    """The canonical shape (N, 3) of coefficients ``alpha``, from the shape layer's arrays."""
-    layer = variables["params"]["shape_layer"]
-    flat = np.asarray(layer["bias"], np.float64) + np.asarray(alpha, np.float64) @ np.asarray(
-        layer["kernel"], np.float64)
-    return flat.reshape(3, -1).T
-
-
-def _refinement_residuals_numpy(variables, kp_norm, vis, alpha_phi, prior, p):
-    """Independent of ``model.refine_camera_and_shape``: for one view, the residuals whose
-    squares sum to the refinement's cost at ``p = (theta, alpha)``, in numpy and scipy: the
-    visible points' 2D distances (orthographic, shifted by the least-squares translation),
-    weighted to a mean, and the canonical points' distances to Phi's shape, weighted to
-    ``prior`` times a mean."""
-    from scipy.spatial.transform import Rotation
-
-    kp, vis = np.asarray(kp_norm, np.float64), np.asarray(vis, np.float64)
-    shape = _canonical_numpy(variables, p[3:])
-    proj = (shape @ Rotation.from_rotvec(p[:3]).as_matrix().T)[:, :2]
-    proj = proj + ((kp - proj) * vis[:, None]).sum(0) / vis.sum()  # argmin_translation
-    fit = (proj - kp) * np.sqrt(vis / vis.sum())[:, None]
-    shift = (shape - _canonical_numpy(variables, alpha_phi)) * np.sqrt(prior / len(vis))
-    return np.concatenate([fit.ravel(), shift.ravel()])
-
-
-def _basis_views(cfg, n=4, seed=0):
-    """``(variables, kp, vis)``: a freshly initialised model (Phi's outputs near 0) whose
-    shape layer is a synthetic shape model (mean and D modes), and ``n`` views of shapes of
-    that model under rotations whose axis-angle components have std 0.35 rad, a quarter of
-    the points hidden."""
-    mean, modes = synthetic.shape_model(cfg.n_keypoints, cfg.shape_basis_size, 0.3, seed=0)
-    variables = model.init_variables(jax.random.key(1), cfg)
-    variables["params"]["shape_layer"] = {
-        "bias": jnp.asarray(mean.T.reshape(-1)),
-        "kernel": jnp.asarray(modes.transpose(0, 2, 1).reshape(len(modes), -1))}
-    rng = np.random.default_rng(seed)
-    from scipy.spatial.transform import Rotation
-
-    rots = Rotation.from_rotvec(rng.normal(size=(n, 3)) * 0.35).as_matrix()
-    shapes = mean + np.einsum("bd,dnc->bnc", rng.normal(size=(n, len(modes))), modes)
-    kp = np.einsum("bij,bnj->bni", rots, shapes)[..., :2] + rng.normal(size=(n, 1, 2))
-    vis = (rng.uniform(size=(n, cfg.n_keypoints)) > 0.25).astype(np.float32)
-    vis[:, :4] = 1.0
-    return variables, jnp.asarray(kp, jnp.float32), jnp.asarray(vis)
-
-
-def test_refinement_reaches_the_minimum_scipy_finds_from_phi_s_output():
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    cfg = dataclasses.replace(CFG, test_time_refine_iters=20, test_time_refine_prior=0.3)
-    variables, kp, vis = _basis_views(cfg)
-    phi = _eval(dataclasses.replace(cfg, test_time_refine_iters=0), variables, kp, vis)
-    out = _eval(cfg, variables, kp, vis)
-    for i in range(len(kp)):
-        def residuals(p, i=i):
-            return _refinement_residuals_numpy(variables, phi["kp_norm"][i], vis[i],
-                                               phi["alpha"][i], 0.3, p)
-
-        def cost(p):
-            return np.sum(residuals(p) ** 2)
-
-        start = np.concatenate([phi["theta"][i], phi["alpha"][i]]).astype(np.float64)
-        best = least_squares(residuals, start, method="lm").x
-        got = np.concatenate([out["theta"][i], out["alpha"][i]]).astype(np.float64)
-        assert cost(got) < 0.5 * cost(start)  # Phi's camera was far off: the fit moved
-        np.testing.assert_allclose(cost(got), cost(best), rtol=1e-3, atol=1e-7)
-        # The reconstruction is the refined camera's and shape's.
-        shape = _canonical_numpy(variables, got[3:])
-        np.testing.assert_allclose(out["shape_canonical"][i], shape, atol=1e-4)
-        depth = (shape @ Rotation.from_rotvec(got[:3]).as_matrix().T)[:, 2]
-        np.testing.assert_allclose(out["shape_camera"][i, :, 2], depth, atol=1e-4)
-
-
-def test_refinement_recovers_the_camera_of_a_view_of_the_model_s_own_shape():
-    # Phi says "no rotation" for every view; the views are its mean shape under other
-    # rotations. With the shape exact, the refined camera is the true one, and so the depth.
-    from scipy.spatial.transform import Rotation
-
-    cfg = dataclasses.replace(CFG, z_equivariance=False, z_augment=False,
-                              test_time_refine_iters=30)
-    shape = synthetic.shape_model(8, 2, 0.3, seed=0)[0]
-    shape = shape - shape.mean(0)
-    variables = _perfect_variables(cfg, shape)
-    truth = Rotation.from_rotvec([[0.4, -0.2, 0.1], [-0.3, 0.0, 0.35], [0.1, 0.4, -0.2]])
-    cams = np.einsum("bij,nj->bni", truth.as_matrix(), shape)
-    out = _eval(cfg, variables, jnp.asarray(cams[..., :2] + 2.0, jnp.float32),
-                jnp.ones((3, 8)))
-    np.testing.assert_allclose(out["rotation"], truth.as_matrix(), atol=1e-4)
-    depth = out["shape_camera"][..., 2] - np.mean(out["shape_camera"][..., 2], 1, keepdims=True)
-    np.testing.assert_allclose(depth, cams[..., 2] - cams[..., 2].mean(1, keepdims=True),
-                               atol=1e-4)
-
-
-def test_every_turned_copy_is_refined():
-    cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4, test_time_turns=5,
-                              test_time_refine_iters=20)
-    variables, kp, vis = _basis_views(cfg, n=6, seed=2)
-    rot = variables["params"]["rot_layer"]  # Phi's camera depends on the turned input
-    variables["params"]["rot_layer"] = dict(rot, kernel=rot["kernel"] * 30.0)
-    want, _, _, _ = _turned_numpy(cfg, variables, kp, vis, 5)  # each copy refined
-    unrefined, _, _, _ = _turned_numpy(dataclasses.replace(cfg, test_time_refine_iters=0),
-                                       variables, kp, vis, 5)
-    assert np.abs(unrefined - want).max() > 1e-2
-    np.testing.assert_allclose(_eval(cfg, variables, kp, vis)["shape_camera"][..., 2], want,
-                               atol=2e-4)
-
-
-def _rotation_residual_numpy(x, ref):
-    """RMS distance of ``x`` to ``ref`` (both centred) after the best proper rotation
-    (scipy's Rotation.align_vectors, weighted Kabsch)."""
-    from scipy.spatial.transform import Rotation
-
-    rot, _ = Rotation.align_vectors(ref, x)
-    return np.sqrt(np.mean(np.sum((rot.apply(x) - ref) ** 2, axis=-1)))
-
-
-def test_one_handedness_gives_every_view_the_mean_shape_s_handedness_and_keeps_its_2d():
-    from scipy.spatial.transform import Rotation
-
-    # Canonical shapes near the model's mean shape, half of them mirrored, under rotations.
-    cfg = CFG
-    variables, _, _ = _basis_views(cfg)
-    mean = _canonical_numpy(variables, np.zeros(cfg.shape_basis_size))
-    rng = np.random.default_rng(4)
-    flip = np.array([1.0, 1.0, -1.0])
-    n = 8
-    truth_mirrored = np.arange(n) % 2 == 1
-    shapes = mean + 0.05 * rng.normal(size=(n, *mean.shape))
-    shapes = np.where(truth_mirrored[:, None, None], shapes * flip, shapes)
-    rots = Rotation.random(n, random_state=5)
-    thetas = rots.as_rotvec()
-    t = np.array([0.5, -1.0, 3.0])
-    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + t
-    net = model.make_network(cfg)
-    fn = jax.jit(jax.vmap(partial(model.one_handedness, net, variables["params"]),
-                          in_axes=(0, None, 0, 0, 0, None)))
-    got = fn(jnp.asarray(x_cam, jnp.float32), jnp.asarray(t, jnp.float32),
-             *(jnp.asarray(a, jnp.float32) for a in (shapes, rots.as_matrix(), thetas)),
-             jnp.ones(cfg.n_keypoints))
-    centred_mean = mean - mean.mean(0)
-    for i in range(n):
-        x = shapes[i] - shapes[i].mean(0)
-        # Independently (scipy's best rotation): is the mirror image nearer to the mean?
-        mirrored = (_rotation_residual_numpy(x * flip, centred_mean)
-                    < _rotation_residual_numpy(x, centred_mean))
-        assert mirrored == truth_mirrored[i]
-        f = flip if mirrored else np.ones(3)
-        assert float(got[4][i]) == float(mirrored)  # the flag says which views were mirrored
-        np.testing.assert_allclose(got[1][i], shapes[i] * f, atol=1e-5)
-        np.testing.assert_allclose(got[2][i], f[:, None] * rots[i].as_matrix() * f, atol=1e-5)
-        np.testing.assert_allclose(Rotation.from_rotvec(got[3][i]).as_matrix(), got[2][i],
-                                   atol=1e-5)
-        depth = x_cam[i, :, 2]
-        want = 2 * t[2] - depth if mirrored else depth
-        np.testing.assert_allclose(got[0][i, :, 2], want, atol=1e-4)
-        np.testing.assert_allclose(got[0][i, :, :2], x_cam[i, :, :2], atol=1e-5)
-        # The mirrored canonical shape under the conjugated rotation is the reflected view.
-        np.testing.assert_allclose(
-            np.asarray(got[1][i], np.float64) @ np.asarray(got[2][i], np.float64).T + t,
-            got[0][i], atol=1e-4)
-
-
-def test_a_body_reference_gives_every_view_the_body_s_handedness():
-    """With ``reference`` (here the built-in humans' average body, "h36m"), a view is
-    mirrored when its shape is nearer, up to a rotation, to the body's mirror image than to
-    the body, whatever the model's own mean shape is; and in the eval pass every view's
-    reconstruction then has the body's handedness, its 2D fit unchanged."""
-    from scipy.spatial.transform import Rotation
-
-    from c3dpo_jax.data import humans
-
-    cfg = dataclasses.replace(CFG, n_keypoints=17)
-    variables = model.init_variables(jax.random.key(2), cfg)
-    body = humans.mean_pose()
-    assert body.shape == (17, 3) and model.handedness_reference("h36m").shape == (17, 3)
-    assert model.handedness_reference("mean_shape") is None
-    rng = np.random.default_rng(6)
-    flip = np.array([1.0, 1.0, -1.0])
-    n = 8
-    truth_mirrored = np.arange(n) % 2 == 0
-    shapes = body + 0.03 * rng.normal(size=(n, 17, 3))
-    shapes = np.where(truth_mirrored[:, None, None], shapes * flip, shapes)
-    rots = Rotation.random(n, random_state=7)
-    t = np.array([0.2, 0.1, 2.0])
-    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes) + t
-    net = model.make_network(cfg)
-    fn = jax.jit(jax.vmap(partial(model.one_handedness, net, variables["params"]),
-                          in_axes=(0, None, 0, 0, 0, None, None)))
-    got = fn(*(jnp.asarray(a, jnp.float32) for a in (x_cam, t, shapes, rots.as_matrix(),
-                                                      rots.as_rotvec())),
-             jnp.ones(17), jnp.asarray(body, jnp.float32))
-    centred = body - body.mean(0)
-    for i in range(n):
-        x = np.asarray(got[1][i], np.float64)
-        x = x - x.mean(0)
-        assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
-        np.testing.assert_allclose(got[1][i], shapes[i] * (flip if truth_mirrored[i] else 1),
-                                   atol=1e-5)
-        np.testing.assert_allclose(got[0][i, :, :2], x_cam[i, :, :2], atol=1e-5)
-    # The eval pass with the setting: the camera-frame shapes have the body's handedness.
-    kp = jnp.asarray(rng.normal(size=(6, 17, 2)), jnp.float32)
-    vis = jnp.ones((6, 17), jnp.float32)
-    on = _eval(dataclasses.replace(cfg, test_time_one_handedness=True,
-                                   test_time_handedness_reference="h36m"), variables, kp, vis)
-    off = _eval(cfg, variables, kp, vis)
-    np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
-    for x in np.asarray(on["shape_camera"], np.float64):
-        x = x - x.mean(0)
-        assert _rotation_residual_numpy(x, centred) < _rotation_residual_numpy(x * flip, centred)
-    # handedness_flipped names the views given their mirror image; own_handedness undoes it,
-    # so the results' "mirrored" is the model's own mix of handednesses either way.
-    flipped = np.asarray(on["handedness_flipped"])
-    assert set(flipped.tolist()) == {0.0, 1.0} and not np.asarray(off["handedness_flipped"]).any()
-    for i in range(len(kp)):
-        a, b = (np.asarray(p["shape_camera"][i, :, 2]) for p in (on, off))
-        np.testing.assert_allclose(a - a.mean(), (b - b.mean()) * (1 - 2 * flipped[i]), atol=1e-5)
-    np.testing.assert_allclose(model.own_handedness(on["shape_canonical"], flipped),
-                               off["shape_canonical"], atol=1e-6)
-    data = KeypointData(kp=np.asarray(kp), vis=np.asarray(vis))
-    scores = [inference.evaluate_split(variables, data, c, "none")["mirrored"] for c in (
-        dataclasses.replace(cfg, test_time_one_handedness=True,
-                            test_time_handedness_reference="h36m"), cfg)]
-    own = evaluation.mirrored_fraction(np.asarray(off["shape_canonical"]))
-    as_given = evaluation.mirrored_fraction(np.asarray(on["shape_canonical"]))
-    assert scores[0] == scores[1] == own != as_given  # the views as the model made them
-
-
-def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():
-    cfg = dataclasses.replace(CFG, test_time_one_handedness=True)
-    variables, data, off = _evaluated(CFG, seed=3)
-    on = _eval(cfg, variables, jnp.asarray(data.kp, jnp.float32),
-               jnp.asarray(data.vis, jnp.float32))
-    np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
-    for i in range(len(data.kp)):
-        a = np.asarray(on["shape_camera"][i, :, 2])
-        b = np.asarray(off["shape_camera"][i, :, 2])
-        a, b = a - a.mean(), b - b.mean()
-        assert np.allclose(a, b, atol=1e-5) or np.allclose(a, -b, atol=1e-5)
-
-
-@pytest.mark.parametrize("change, message", [
-    ({"test_time_turns": 4, "z_augment": True}, r"test_time_turns=4 \(must be an odd number"),
-    ({"test_time_turns": 0}, r"test_time_turns=0 \(must be an integer >= 1\)"),
-    ({"test_time_turn_span": "bogus"}, r"test_time_turn_span='bogus' \(known: augmentation"),
-    ({"projection_type": "Perspective"}, r"projection_type='Perspective' \(known:"),
-    ({"test_time_refine_iters": -1}, r"test_time_refine_iters=-1 \(must be an integer >= 0\)"),
-    ({"test_time_refine_prior": float("nan")}, r"test_time_refine_prior=nan \(must be >= 0\)"),
-    ({"projection_type": "perspective", "test_time_one_handedness": True},
-     r"test_time_one_handedness=True \(must be False for a perspective model"),
-    ({"test_time_handedness_reference": "h36m"},
-     r"test_time_handedness_reference='h36m' \(used with test_time_one_handedness=True only"),
-    ({"test_time_handedness_reference": "h36m", "test_time_one_handedness": True,
-      "n_keypoints": 18},
-     r"test_time_handedness_reference='h36m' \(a body of 17 points in its joint order; the "
-     r"model has 18"),
-])
-def test_a_model_config_that_would_change_inference_silently_is_refused(change, message):
-    """However it is made (``dataclasses.replace`` here, ``ModelConfig(...)``, a hand-edited
-    config.json read by ``load``): an even number of turns had used one copy less, an
-    unknown span the circle's, a negative prior Phi's output."""
-    with pytest.raises(ValueError, match="model config: " + message):
-        dataclasses.replace(model.ModelConfig(), **change)

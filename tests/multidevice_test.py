@@ -105,7 +105,7 @@ def test_main_job_trains_on_four_devices_resumes_and_matches_one(tmp_path, env):
     gradient. Scored by Phi's own output: the test-time refinement's iterations on a model
     20 steps old turn that rounding into a 5e-3 difference, which is not the training's."""
     par = str(tmp_path / "par")
-    sgd = ("--config.optim.optimizer=sgd", "--config.model.test_time_refine_iters=0")
+    sgd = ("--config.optim.optimizer=sgd", "--config.inference.refine_iters=0")
     log, _ = _main(env, par, "--config.train.num_steps=10", *sgd)
     assert "data parallel over 4 devices" in log
     log, final = _main(env, par, *sgd)  # the smoke config's 20 steps, from the step-10 checkpoint

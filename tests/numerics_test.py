@@ -3,13 +3,14 @@ and odd but legal inputs give finite losses and gradients."""
 
 import dataclasses
 import functools
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from c3dpo_jax import geometry, losses, model, train
+from c3dpo_jax import geometry, lift, losses, model, train
 from c3dpo_jax.data import synthetic
 
 CFG = model.ModelConfig(
@@ -25,8 +26,9 @@ CFG = model.ModelConfig(
 )
 B = 6
 # The eval pass as users run it, compiled (op by op it compiles hundreds of programs); the
-# config, positional, is static.
-_forward_eval = jax.jit(model.forward_eval, static_argnums=5)
+# configs are static, the release's inference.
+_forward_eval = jax.jit(partial(lift.forward_eval, body=None, options=lift.InferenceConfig()),
+                        static_argnames="cfg")
 
 
 @functools.cache
@@ -89,8 +91,8 @@ def test_eval_outputs_ignore_hidden_values(junk):
     kp, vis = jnp.asarray(batch["kp"][i]), jnp.asarray(batch["vis"][i])
     dirty = jnp.where(vis[:, None] > 0, kp, np.float32(junk))
     ones = jnp.ones(8)
-    clean_out = _forward_eval(_variables(), kp, vis, ones, None, CFG)
-    dirty_out = _forward_eval(_variables(), dirty, vis, ones, None, CFG)
+    clean_out = _forward_eval(_variables(), kp, vis, ones, None, cfg=CFG)
+    dirty_out = _forward_eval(_variables(), dirty, vis, ones, None, cfg=CFG)
     for k in clean_out:
         np.testing.assert_array_equal(dirty_out[k], clean_out[k], err_msg=k)
 
@@ -142,8 +144,8 @@ def test_perspective_hidden_values_are_ignored_too():
     i = int(np.flatnonzero((batch["vis"] == 0).any(1))[0])
     kp, vis = jnp.asarray(batch["kp"][i] * 100 + 300), jnp.asarray(batch["vis"][i])
     K = jnp.array([[500.0, 0, 300], [0, 500, 300], [0, 0, 1]])
-    clean = _forward_eval(variables, kp, vis, jnp.ones(8), K, cfg)
+    clean = _forward_eval(variables, kp, vis, jnp.ones(8), K, cfg=cfg)
     dirty = _forward_eval(
-        variables, jnp.where(vis[:, None] > 0, kp, np.nan), vis, jnp.ones(8), K, cfg
+        variables, jnp.where(vis[:, None] > 0, kp, np.nan), vis, jnp.ones(8), K, cfg=cfg
     )
-    np.testing.assert_array_equal(dirty["shape_image_coord"], clean["shape_image_coord"])
+    np.testing.assert_array_equal(dirty["shape_3d"], clean["shape_3d"])

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from c3dpo_jax import model, predict
+from c3dpo_jax import lift, model, predict
 from c3dpo_jax.data import synthetic
 from c3dpo_jax.reconstruct import C3DPOParams, reconstruct, save_workdir
 
@@ -187,3 +187,26 @@ def test_inference_flags_and_picture_flags_are_checked_before_the_work(setup, tm
     with caplog.at_level("WARNING"):
         predict.run(workdir, str(path), out, skeleton="h36m")
     assert "--skeleton and --y_up shape the pictures only" in caplog.text
+
+
+def test_every_inference_option_is_a_flag_of_its_name(setup):
+    """c3dpo-predict has a flag for each ``InferenceConfig`` field, which reaches
+    ``reconstruct`` under that name."""
+    root, params, workdir, data = setup
+    helpfull = _run("--helpfull").stdout
+    for name in lift.FIELDS:
+        assert f"--{name}:" in helpfull or f"--[no]{name}:" in helpfull, name
+    entries = [{"kp_loc": data.kp[i].T.tolist(), "kp_vis": data.vis[i].tolist()}
+               for i in range(3)]
+    path = root / "flags.json"
+    path.write_text(json.dumps(entries))
+    out = str(root / "flags.npz")
+    proc = _run(f"--workdir={workdir}", f"--input={path}", f"--output={out}", "--turns=4",
+                "--turn_span=circle", "--noreplace_keypoints_with_input", "--refine_iters=2",
+                "--refine_prior=0.5")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    want = reconstruct(params, data.kp[:3], data.vis[:3], turns=4, turn_span="circle",
+                       replace_keypoints_with_input=False, refine_iters=2, refine_prior=0.5)
+    np.testing.assert_allclose(np.load(out)["shape_3d"], want.shape_3d, atol=1e-4)
+    assert np.abs(want.shape_3d - reconstruct(params, data.kp[:3], data.vis[:3]).shape_3d
+                  ).max() > 1e-4  # the options changed the output

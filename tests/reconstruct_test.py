@@ -13,7 +13,7 @@ import optax
 import pytest
 
 import c3dpo_jax
-from c3dpo_jax import checkpoint, model
+from c3dpo_jax import checkpoint, lift, model
 from c3dpo_jax.data import synthetic
 from c3dpo_jax.reconstruct import (
     C3DPOParams,
@@ -44,8 +44,9 @@ def _inputs(b, n=7, seed=0):
 
 def _direct(params, kp, vis):
     """Independent path: vmapped forward_eval on the un-padded batch, invisible zeroed."""
-    fn = lambda k, v: model.forward_eval(params.variables, k * v[:, None], v,  # noqa: E731
-                                         jnp.ones_like(v), None, params.config)
+    fn = lambda k, v: lift.forward_eval(params.variables, k * v[:, None], v,  # noqa: E731
+                                        jnp.ones_like(v), None, None, params.config,
+                                        params.inference)
     return jax.jit(jax.vmap(fn))(jnp.asarray(kp), jnp.asarray(vis))
 
 
@@ -56,7 +57,7 @@ def test_batch_matches_the_per_example_model(params):
     assert isinstance(rec, Reconstruction) and isinstance(rec.shape_3d, np.ndarray)
     assert rec.shape_3d.shape == (5, 7, 3) and rec.rotation.shape == (5, 3, 3)
     assert rec.alpha.shape == (5, 3) and rec.kp_reprojected.shape == (5, 7, 2)
-    for ours, theirs in [(rec.shape_3d, "shape_image_coord"),
+    for ours, theirs in [(rec.shape_3d, "shape_3d"),
                          (rec.shape_canonical, "shape_canonical"),
                          (rec.rotation, "rotation"), (rec.alpha, "alpha"),
                          (rec.kp_reprojected, "kp_reprojected")]:
@@ -96,36 +97,33 @@ def test_coordinates_far_from_zero_keep_their_precision(params):
 
 def test_turns_override_the_models_own_setting_and_are_checked(params):
     kp, vis = _inputs(4)
-    turned = dataclasses.replace(CFG, z_augment=True, test_time_turns=3)
-    own = reconstruct(C3DPOParams(params.variables, turned), kp, vis)
-    np.testing.assert_allclose(
-        own.shape_3d, _direct(C3DPOParams(params.variables, turned), kp, vis)["shape_image_coord"],
-        rtol=1e-5, atol=1e-4)
-    plain = C3DPOParams(params.variables, dataclasses.replace(CFG, z_augment=True))
+    augmented = dataclasses.replace(CFG, z_augment=True)
+    turned = C3DPOParams(params.variables, augmented, lift.InferenceConfig(turns=3))
+    own = reconstruct(turned, kp, vis)
+    np.testing.assert_allclose(own.shape_3d, _direct(turned, kp, vis)["shape_3d"],
+                               rtol=1e-5, atol=1e-4)
+    plain = C3DPOParams(params.variables, augmented)
     np.testing.assert_allclose(reconstruct(plain, kp, vis, turns=3).shape_3d, own.shape_3d,
                                rtol=1e-5, atol=1e-4)
-    np.testing.assert_allclose(reconstruct(C3DPOParams(params.variables, turned), kp, vis,
-                                           turns=1).shape_3d,
+    np.testing.assert_allclose(reconstruct(turned, kp, vis, turns=1).shape_3d,
                                reconstruct(plain, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(reconstruct(plain, kp, vis, turns=np.int64(3)).shape_3d,
                                own.shape_3d, rtol=1e-5, atol=1e-4)  # numpy integers too
-    with pytest.raises(ValueError, match=r"^turns=4 with the model's turn_span 'augmentation' "
-                       r"\(pass turn_span= to choose another\) \(must be an odd number\)$"):
+    with pytest.raises(ValueError, match=r"^turns=4 \(must be an odd number\)$"):
         reconstruct(plain, kp, vis, turns=4)
     # Trained without in-plane augmentation: the argument to pass is named.
-    with pytest.raises(ValueError, match=r"^turns=3 with the model's .* \(must be used with "
+    with pytest.raises(ValueError, match=r"^turns=3 \(must be used with "
                        r"model.z_augment=True .*; turn_span='circle' does not\)\)$"):
         reconstruct(params, kp, vis, turns=3)
     for bad in (0, -2, True):
-        with pytest.raises(ValueError, match=r"^turns=.* \(must be an integer >= 1, or None\)$"):
+        with pytest.raises(ValueError, match=r"^turns=.* \(must be an integer >= 1\)$"):
             reconstruct(plain, kp, vis, turns=bad)
     # Round the circle: no in-plane augmentation needed, any number of copies; the model's
     # own span or the override give the same.
-    circle = C3DPOParams(params.variables, dataclasses.replace(
-        CFG, test_time_turns=4, test_time_turn_span="circle"))
+    circle = C3DPOParams(params.variables, CFG, lift.InferenceConfig(turns=4, turn_span="circle"))
     np.testing.assert_allclose(
         reconstruct(circle, kp, vis).shape_3d,
-        _direct(circle, kp, vis)["shape_image_coord"], rtol=1e-5, atol=1e-4)
+        _direct(circle, kp, vis)["shape_3d"], rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(reconstruct(params, kp, vis, turns=4, turn_span="circle").shape_3d,
                                reconstruct(circle, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(reconstruct(circle, kp, vis, turn_span="augmentation",
@@ -133,11 +131,11 @@ def test_turns_override_the_models_own_setting_and_are_checked(params):
                                reconstruct(params, kp, vis).shape_3d, rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match=r"^turn_span='spiral' \(must be one of"):
         reconstruct(circle, kp, vis, turn_span="spiral")
-    with pytest.raises(ValueError, match=r"^turns=4 with turn_span='augmentation' \(must be an "):
+    with pytest.raises(ValueError, match=r"^turns=4 \(must be an odd number"):
         reconstruct(circle, kp, vis, turn_span="augmentation")
     # Round the circle and the range: the range is the training augmentation's.
-    with pytest.raises(ValueError, match=r"^turns=4 with turn_span='circle_and_range' \(must be "
-                       r"used with model.z_augment=True"):
+    with pytest.raises(ValueError, match=r"^turns=4 \(must be used with model.z_augment=True "
+                       r".*turn_span 'circle_and_range' uses"):
         reconstruct(circle, kp, vis, turn_span="circle_and_range")
     # One pass is always allowed, even where turning is not (a perspective model).
     persp = C3DPOParams(params.variables, dataclasses.replace(CFG, projection_type="perspective"))
@@ -156,9 +154,9 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params, monke
         "bias": jnp.asarray(mean.T.reshape(-1)),
         "kernel": jnp.asarray(modes.transpose(0, 2, 1).reshape(3, -1))}))
     params = C3DPOParams(variables, CFG)
-    refined = C3DPOParams(variables, dataclasses.replace(CFG, test_time_refine_iters=5))
+    refined = C3DPOParams(variables, CFG, lift.InferenceConfig(refine_iters=5))
     own = reconstruct(refined, kp, vis)
-    np.testing.assert_allclose(own.shape_3d, _direct(refined, kp, vis)["shape_image_coord"],
+    np.testing.assert_allclose(own.shape_3d, _direct(refined, kp, vis)["shape_3d"],
                                rtol=1e-5, atol=1e-4)
     assert np.abs(own.shape_3d - reconstruct(params, kp, vis).shape_3d).max() > 1e-3
     np.testing.assert_allclose(reconstruct(params, kp, vis, refine_iters=5).shape_3d,
@@ -181,23 +179,23 @@ def test_refinement_override_the_models_own_setting_and_is_checked(params, monke
     seen = []
 
     def spy(p, *arrays):
-        seen.append(p.config.test_time_one_handedness)
+        seen.append(p.inference.one_handedness)
         return _reconstruct_batch(p, *arrays)
 
     monkeypatch.setattr(module, "_reconstruct_batch", spy)
-    handed = C3DPOParams(variables, dataclasses.replace(CFG, test_time_one_handedness=True))
+    handed = C3DPOParams(variables, CFG, lift.InferenceConfig(one_handedness=True))
     for p, option in ((params, True), (handed, False), (handed, None), (params, None)):
         reconstruct(p, kp, vis, one_handedness=option)
     assert seen == [True, False, True, False]
-    with pytest.raises(ValueError, match=r"^one_handedness=True \(must be False or None for a "
+    with pytest.raises(ValueError, match=r"^one_handedness=True \(must be False for a "
                        r"perspective model"):
         reconstruct(persp, kp, vis, K=K, one_handedness=True)
 
 
 def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeypatch):
-    """``handedness_reference=`` reaches the model's option (its effect: model_test) and turns
+    """``handedness_reference=`` reaches the model's option (its effect: lift_test) and turns
     ``one_handedness`` on unless it is False; a body of another joint order, an unknown
-    name and a body with one_handedness=False are refused in one line."""
+    name and an unresolved one are refused in one line."""
     cfg17 = dataclasses.replace(CFG, n_keypoints=17)
     p17 = C3DPOParams(model.init_variables(jax.random.key(1), cfg17), cfg17)
     kp, vis = _inputs(3, n=17)
@@ -205,7 +203,7 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
     seen = []
 
     def spy(p, *arrays):
-        seen.append((p.config.test_time_one_handedness, p.config.test_time_handedness_reference))
+        seen.append((p.inference.one_handedness, p.inference.handedness_reference))
         return _reconstruct_batch(p, *arrays)
 
     monkeypatch.setattr(module, "_reconstruct_batch", spy)
@@ -213,19 +211,20 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
     reconstruct(p17, kp, vis, one_handedness=True, handedness_reference="mean_shape")
     reconstruct(p17, kp, vis, handedness_reference="mean_shape")
     reconstruct(p17, kp, vis, handedness_reference="coco")
-    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape"), (True, "coco")]
+    reconstruct(p17, kp, vis, handedness_reference="h36m", one_handedness=False)
+    assert seen == [(True, "h36m"), (True, "mean_shape"), (False, "mean_shape"), (True, "coco"),
+                    (False, "h36m")]
     kp7, vis7 = _inputs(3)
     for p, k, v, kwargs, message in (
             (params, kp7, vis7, {"handedness_reference": "h36m"},
              r"^handedness_reference='h36m' \(a body of 17 points in its joint order; the "
              r"model has 7\)"),
             (p17, kp, vis, {"handedness_reference": "smpl"},
-             r"^handedness_reference='smpl' \(known: mean_shape, h36m, coco, body, auto\)"),
+             r"^handedness_reference='smpl' \(must be one of 'mean_shape', 'h36m', 'coco', "
+             r"'body', 'auto', or a body file"),
             (p17, kp, vis, {"handedness_reference": "auto"},
              r"^handedness_reference='auto' \(a training setting, resolved from the training "
-             r"views"),
-            (p17, kp, vis, {"handedness_reference": "h36m", "one_handedness": False},
-             r"^handedness_reference='h36m' \(used with one_handedness=True or None only\)")):
+             r"views")):
         with pytest.raises(ValueError, match=message):
             reconstruct(p, k, v, **kwargs)
 
@@ -240,7 +239,7 @@ def test_body_distance_is_the_procrustes_residual_and_warns_of_another_joint_ord
     from scipy.spatial.transform import Rotation
 
     module = sys.modules["c3dpo_jax.reconstruct"]  # the package's attribute is the function
-    body = np.asarray(model.handedness_reference("h36m"), np.float64)
+    body = np.asarray(lift.reference_body("h36m"), np.float64)
     rng = np.random.default_rng(3)
     shapes = body + 0.2 * rng.normal(size=(5, 17, 3))
     want = []
@@ -258,7 +257,7 @@ def test_body_distance_is_the_procrustes_residual_and_warns_of_another_joint_ord
     p17 = C3DPOParams(model.init_variables(jax.random.key(1), cfg17), cfg17)
     kp, vis = _inputs(4, n=17)
     for canonical, warned in ((copies, False), (copies[:, rng.permutation(17)], True)):
-        def fake(p, kp, vis, *rest, canonical=canonical):
+        def fake(p, kp, vis, *rest, canonical=canonical):  # body: rest[-1]
             b = kp.shape[0]
             c = np.resize(canonical, (b, 17, 3))
             return Reconstruction(np.asarray(c), c, np.broadcast_to(np.eye(3), (b, 3, 3)),
@@ -360,7 +359,7 @@ def test_load_from_workdir_or_step_dir_restores_the_saved_variables(params, tmp_
     workdir = save_workdir(params, str(tmp_path / "w"))
     for path in (workdir, os.path.join(workdir, "checkpoints", "0")):
         loaded = load(path)
-        assert loaded.config == CFG
+        assert loaded.config == CFG and loaded.inference == params.inference
         same = jax.tree.map(lambda a, b: np.array_equal(np.asarray(a), np.asarray(b)),
                             loaded.variables, params.variables)
         assert all(jax.tree.leaves(same))
@@ -417,6 +416,23 @@ def test_load_reads_a_training_checkpoint_without_an_optimiser(params, tmp_path)
     data[len(data) // 2] ^= 0xFF
     biggest.write_bytes(bytes(data))
     assert _same(load(workdir).variables, scaled[1])  # the damaged step 2 is skipped
+
+
+def test_a_model_keeps_its_inference_options_through_its_workdir(params, tmp_path):
+    """``save_workdir`` writes the inference options as config.json's own section, which
+    ``load`` gives back; ``reconstruct`` takes every option by its field's name."""
+    options = lift.InferenceConfig(refine_iters=4, refine_prior=0.5,
+                                   replace_keypoints_with_input=False)
+    workdir = save_workdir(C3DPOParams(params.variables, CFG, options), str(tmp_path / "w"))
+    with open(os.path.join(workdir, "config.json")) as f:
+        assert json.load(f)["inference"] == json.loads(json.dumps(options.to_dict()))
+    loaded = load(workdir)
+    assert loaded.inference == options
+    kp, vis = _inputs(3)
+    np.testing.assert_allclose(reconstruct(loaded, kp, vis).shape_3d,
+                               reconstruct(params, kp, vis, **options.to_dict()).shape_3d)
+    with pytest.raises(ValueError, match=r"^unknown inference option\(s\) \['turn'\]"):
+        reconstruct(params, kp, vis, turn=3)
 
 
 def test_package_exports_the_public_api():

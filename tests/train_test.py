@@ -12,6 +12,7 @@ import pytest
 
 from c3dpo_jax import device_data, model, run_records, train
 from c3dpo_jax.data import KeypointData, synthetic
+from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
 from configs import default, own_json
 
@@ -199,9 +200,9 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
     assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
     # Scoring again with other inference options says which were used: the history's
     # records were made with the run's own.
-    cfg.model.test_time_refine_iters = 3
+    cfg.inference.refine_iters = 3
     again = train.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
-    assert again["final"]["inference"]["test_time_refine_iters"] == 3
+    assert again["final"]["inference"] == {"refine_iters": 3}
     assert "inference" not in whole["final"]  # main_test: nor when scored with the run's own
     # A workdir whose checkpoint is past the steps asked for is scored as it is, with a word.
     with caplog.at_level("WARNING"):
@@ -286,7 +287,7 @@ def test_every_variant_and_perspective_projection_train(variant, tmp_path):
     assert repro[-20:].mean() < 0.7 * repro[:20].mean()
     has_canon = np.asarray(metrics["loss/canonicalisation"])[-1] > 0
     assert has_canon == cfg.canonicalization
-    res = train.evaluate_split(state.variables, data, cfg, "default")
+    res = train.evaluate_split(state.variables, data, cfg, InferenceConfig(), "default")
     assert np.isfinite(res["mpjpe"]) and np.isfinite(res["reprojection"])
 
 

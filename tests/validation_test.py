@@ -215,40 +215,49 @@ def test_schedule_and_ramp_rules():
     assert validation.config_problems(c) == []
 
 
-def test_test_time_turns_rules():
+def test_turns_rules():
     c = default.get_config()
     c.model.z_augment = True
-    c.model.test_time_turns = 5
+    c.inference.turns = 5
     assert validation.config_problems(c) == []
-    c.model.test_time_turns = 4
+    c.inference.turns = 4
     c.model.projection_type = "perspective"
     (problem,) = validation.config_problems(c)
-    assert problem.startswith("config.model.test_time_turns=4 (must be an odd number and used "
+    assert problem.startswith("config.inference.turns=4 (must be an odd number and used "
                               "with model.projection_type='orthographic' only")
-    c.model.test_time_turns, c.model.projection_type, c.model.z_augment = 3, "orthographic", False
+    c.inference.turns, c.model.projection_type, c.model.z_augment = 3, "orthographic", False
     (problem,) = validation.config_problems(c)
     assert "model.z_augment=True" in problem
-    c.model.test_time_turns = 0
+    c.inference.turns = 0
     assert validation.config_problems(c) == [
-        f"config.model.test_time_turns=0 (must be {validation.POSITIVE_INT})"]
+        f"config.inference.turns=0 (must be {validation.POSITIVE_INT})"]
     # Round the circle: any number of copies, no in-plane augmentation needed.
-    c.model.test_time_turns, c.model.test_time_turn_span = 4, "circle"
+    c.inference.turns, c.inference.turn_span = 4, "circle"
     assert validation.config_problems(c) == []
     # Round the circle and the range: any number of copies, the augmentation's range.
-    c.model.test_time_turn_span = "circle_and_range"
+    c.inference.turn_span = "circle_and_range"
     (problem,) = validation.config_problems(c)
     assert "model.z_augment=True" in problem
     c.model.z_augment = True
     assert validation.config_problems(c) == []
-    c.model.test_time_turn_span = "spiral"
+    c.inference.turn_span = "spiral"
     assert validation.config_problems(c) == [
-        "config.model.test_time_turn_span='spiral' (must be one of 'augmentation', 'circle', "
+        "config.inference.turn_span='spiral' (must be one of 'augmentation', 'circle', "
         "'circle_and_range')"]
 
 
+def test_an_inference_option_under_its_model_name_names_its_new_field():
+    """A dict config (a saved config.json's, a script's) whose model section sets an
+    inference option: one line naming its inference field."""
+    c = default.get_config().to_dict()
+    c["model"]["test_time_refine_iters"] = 0
+    assert validation.config_problems(c) == [
+        "config.model.test_time_refine_iters is now config.inference.refine_iters"]
+
+
 ORTHOGRAPHIC_ONLY = [  # field, a value for orthographic models only, its text and value off
-    ("model.test_time_refine_iters", 20, "0 (no refinement)", 0),
-    ("model.test_time_one_handedness", True, "False", False),
+    ("inference.refine_iters", 20, "0 (no refinement)", 0),
+    ("inference.one_handedness", True, "False", False),
     ("model.keypoint_scaling", "per_view", "'global' or 'auto'", "global"),
     ("loss.w_supervised", 1.0, "0", 0.0),
 ]
@@ -268,27 +277,30 @@ def test_orthographic_only_settings_are_refused_with_perspective(field, value, o
     assert validation.config_problems(c) == []
 
 
-def test_a_body_reference_needs_its_joint_count_and_one_handedness():
+def test_a_body_reference_needs_its_joint_count_and_an_orthographic_model():
     c = default.get_config()
     c.model.n_keypoints = 20
-    c.model.test_time_handedness_reference = "h36m"
-    c.model.test_time_one_handedness = True
+    c.inference.handedness_reference = "h36m"
+    c.inference.one_handedness = True
     assert validation.config_problems(c) == [
-        "config.model.test_time_handedness_reference='h36m' (a body of 17 points in its joint "
+        "config.inference.handedness_reference='h36m' (a body of 17 points in its joint "
         "order; the model has 20)"]
     c.model.n_keypoints = 17
     assert validation.config_problems(c) == []
-    c.model.test_time_one_handedness = False
-    assert validation.config_problems(c) == [
-        "config.model.test_time_handedness_reference='h36m' (used with "
-        "test_time_one_handedness=True only)"]
-    c.model.test_time_handedness_reference = "h63m"
-    assert validation.config_problems(c) == [
-        "config.model.test_time_handedness_reference='h63m' (must be one of 'mean_shape', "
-        "'h36m', 'coco', 'body', 'auto', or a body file (.npy, .json, .txt, .csv))"]
-    c.model.test_time_handedness_reference = "my_rig.npy"  # read when training starts
+    c.inference.one_handedness = False  # one mirror decision for the whole model
     assert validation.config_problems(c) == []
-    c.model.test_time_handedness_reference = "auto"  # resolved from the training data
+    c.model.projection_type = "perspective"
+    assert validation.config_problems(c) == [
+        "config.inference.handedness_reference='h36m' (must be 'mean_shape' for a "
+        "perspective model: orthographic models only)"]
+    c.model.projection_type = "orthographic"
+    c.inference.handedness_reference = "h63m"
+    assert validation.config_problems(c) == [
+        "config.inference.handedness_reference='h63m' (must be one of 'mean_shape', "
+        "'h36m', 'coco', 'body', 'auto', or a body file (.npy, .json, .txt, .csv))"]
+    c.inference.handedness_reference = "my_rig.npy"  # read when training starts
+    assert validation.config_problems(c) == []
+    c.inference.handedness_reference = "auto"  # resolved from the training data
     assert validation.config_problems(c) == []
 
 
@@ -297,11 +309,11 @@ def test_refinement_and_supervised_weight_ranges():
     c.loss.w_reprojection = c.loss.w_canonicalization = 0.0
     c.loss.w_supervised = 1.0  # the truth's term alone is enough to train
     assert validation.config_problems(c) == []
-    c.model.test_time_refine_iters, c.model.test_time_refine_prior = -1, -0.5
+    c.inference.refine_iters, c.inference.refine_prior = -1, -0.5
     c.loss.w_supervised = -1.0
     assert validation.config_problems(c) == [
-        f"config.model.test_time_refine_iters=-1 (must be {validation.COUNT})",
-        f"config.model.test_time_refine_prior=-0.5 (must be {validation.NON_NEGATIVE})",
         f"config.loss.w_supervised=-1.0 (must be {validation.NON_NEGATIVE})",
+        f"config.inference.refine_iters=-1 (must be {validation.COUNT})",
+        f"config.inference.refine_prior=-0.5 (must be {validation.NON_NEGATIVE})",
         "config.loss.w_reprojection=0 and config.loss.w_canonicalization=0 (at least one "
         "loss weight must be > 0)"]

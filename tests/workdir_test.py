@@ -71,7 +71,7 @@ def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, n
         {"train.ckpt_every": 5},
         {"data.protocol": "none"},
         {"data.test_path": "b.json"},
-        {"model.test_time_refine_iters": 5},  # inference only
+        {"inference.refine_iters": 5},  # inference only
         {"train.epochs": 20},
     ],
 )

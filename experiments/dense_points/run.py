@@ -55,7 +55,7 @@ def command(k: int, seed: int, steps: int, workdir: str) -> list[str]:
             f"--config.train.samples_per_epoch={256 * steps // 5}",
             "--config.train.epochs=5", "--config.optim.lr_milestones=(4,)",
             "--config.train.eval_every_steps=0", "--config.train.eval_every_epochs=0",
-            "--config.model.test_time_refine_iters=0"]  # Phi's single pass, as the tables
+            "--config.inference.refine_iters=0"]  # Phi's single pass, as the tables
 
 
 def score(workdir: str) -> dict:
@@ -95,7 +95,7 @@ def run_cost(out: str, counts: list[int]) -> None:
         print(f"benchmark, {k} keypoints", flush=True)
         subprocess.run([sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/humans.py",
                         f"--config.data.humans.dense_points={k - N_JOINTS}", "--steps=10",
-                        "--config.model.test_time_refine_iters=0",  # the eval pass: Phi's
+                        "--config.inference.refine_iters=0",  # the eval pass: Phi's
                         f"--json={path}"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
 
 

@@ -54,7 +54,7 @@ their 2D error.
 
 ``refine --runs=DIR,DIR,... [--priors=0.3,1,3]``: for trained runs, test MPJPE with one pass
 (Phi's output), with ``union32`` (the 32 turned copies, ``union`` above) and with each view
-refined at test time (``model.test_time_refine_iters=20``, one pass) under each prior weight,
+refined at test time (``inference.refine_iters=20``, one pass) under each prior weight,
 last ``union32`` with every copy refined under the first prior: the library's path
 (``reconstruct`` with the run's config changed).
 
@@ -75,9 +75,9 @@ those of the run's own inference (the default's: refined).
 
 ``handedness --runs=DIR,DIR,...``: for trained runs, on the test views, the fraction of views
 whose unflipped prediction is the better one (``signs``) and the error without the
-protocol's flip, without and with ``model.test_time_one_handedness`` (which leaves the
+protocol's flip, without and with ``inference.one_handedness`` (which leaves the
 flip-resolved error unchanged), then with the handedness of each human body
-(``model.test_time_handedness_reference=h36m`` or ``coco``, models of 17 points): 0 or 1
+(``inference.handedness_reference=h36m`` or ``coco``, models of 17 points): 0 or 1
 when every view has one handedness, 1 when it is the truth's.
 
 ``basis --runs=DIR,DIR,...``: for trained runs, is it the learnt shape basis or the choice of
@@ -132,6 +132,7 @@ from runner import run_main  # noqa: E402
 import c3dpo_jax  # noqa: E402
 import c3dpo_jax.cli  # noqa: E402
 from c3dpo_jax import baselines, evaluation  # noqa: E402
+from c3dpo_jax import lift as lift_lib  # noqa: E402
 from c3dpo_jax import model as model_lib  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset  # noqa: E402
 
@@ -389,7 +390,7 @@ SELECT_TOLERANCE = 1.1
 
 
 def selected_average(run: str) -> list[float]:
-    """Test MPJPE of the model (with its ``test_time_turns``), then, for each of
+    """Test MPJPE of the model (with its ``inference.turns``), then, for each of
     ``SELECT_COPIES`` copies round the full circle, of the copy with the lowest 2D
     reprojection error and of the median over the copies within ``SELECT_TOLERANCE`` times
     that error."""
@@ -407,13 +408,13 @@ UNION_COPIES = 32
 
 
 def union_average(run: str) -> list[float]:
-    """Test MPJPE of the model (with its ``test_time_turns``), then, with ``UNION_COPIES``
+    """Test MPJPE of the model (with its ``inference.turns``), then, with ``UNION_COPIES``
     copies round the full circle, of the median over the copies within ``SELECT_TOLERANCE``
     times the lowest 2D reprojection error (``selected``), and of the median over those and
     every copy within the augmentation's range (the in-range copies always kept)."""
     model, kp, vis, own, score = _depth_scoring(run)
-    in_range = c3dpo_jax.model.turns_in_range(dataclasses.replace(
-        model.config, test_time_turns=UNION_COPIES))  # the library's copies, the same grid
+    in_range = lift_lib.turns_in_range(dataclasses.replace(
+        model.inference, turns=UNION_COPIES), model.config)  # the library's copies' grid
     d, err = _turned_depths(model, kp, vis, _circle(UNION_COPIES), with_2d=True)
     fit = err <= SELECT_TOLERANCE * err.min(0)
     return [own] + [score(np.nanmedian(np.where(keep[..., None], d, np.nan), 0))
@@ -428,19 +429,17 @@ def refined(run: str) -> list[float]:
     time (``REFINE_ITERS`` steps, one pass) with each of ``--priors``: the library's path."""
     test, model = _test_split_and_model(run)
 
-    def score(**settings) -> float:
-        params = model.replace(config=dataclasses.replace(model.config, **settings))
-        return evaluation.evaluate(c3dpo_jax.reconstruct(params, test.kp, test.vis).shape_3d,
-                                   test)["mpjpe"]
+    def score(**options) -> float:
+        return evaluation.evaluate(c3dpo_jax.reconstruct(model, test.kp, test.vis,
+                                                         **options).shape_3d, test)["mpjpe"]
 
-    none = {"test_time_refine_iters": 0}
-    return ([score(test_time_turns=1, **none),
-             score(test_time_turns=UNION_COPIES, test_time_turn_span="circle_and_range", **none)]
-            + [score(test_time_turns=1, test_time_refine_iters=REFINE_ITERS,
-                     test_time_refine_prior=float(w)) for w in FLAGS.priors]
-            + [score(test_time_turns=UNION_COPIES, test_time_turn_span="circle_and_range",
-                     test_time_refine_iters=REFINE_ITERS,
-                     test_time_refine_prior=float(FLAGS.priors[0]))])
+    none = {"refine_iters": 0}
+    return ([score(turns=1, **none),
+             score(turns=UNION_COPIES, turn_span="circle_and_range", **none)]
+            + [score(turns=1, refine_iters=REFINE_ITERS, refine_prior=float(w))
+               for w in FLAGS.priors]
+            + [score(turns=UNION_COPIES, turn_span="circle_and_range",
+                     refine_iters=REFINE_ITERS, refine_prior=float(FLAGS.priors[0]))])
 
 
 def spread(run: str) -> list[float]:
@@ -473,8 +472,8 @@ def objective(run: str) -> list[float]:
     truth = _centred(views.kp3d)
     fit = oracle_basis_fit(train.kp3d, truth, FLAGS.n_basis)
     model = c3dpo_jax.load(run)
-    one_pass = model.replace(config=dataclasses.replace(
-        model.config, test_time_turns=1, test_time_refine_iters=0))
+    one_pass = model.replace(inference=dataclasses.replace(
+        model.inference, turns=1, refine_iters=0))
     w = views.vis / views.vis.sum()
     out = [float(np.linalg.norm(fit - truth, axis=-1).mean()),
            float(np.linalg.norm(fit[..., :2] - truth[..., :2], axis=-1).mean())]
@@ -598,14 +597,14 @@ def mirror_cost(run: str) -> list[float]:
 
     _, views, _ = _training_split_and_views(run)
     m = c3dpo_jax.load(run)
-    cfg = dataclasses.replace(m.config, test_time_turns=1, test_time_refine_iters=0,
-                              test_time_one_handedness=False)
-    pred = inference.predict_split(m.variables, views, cfg)
+    cfg = m.config
+    options = dataclasses.replace(m.inference, turns=1, refine_iters=0, one_handedness=False)
+    pred = inference.predict_split(m.variables, views, cfg, options)
     net = model_lib.make_network(cfg)
     params = m.variables["params"]
     ones = jnp.ones(cfg.n_keypoints)
-    mean = np.asarray(model_lib._shape(net, params, jnp.zeros(cfg.shape_basis_size), ones))
-    basis = np.asarray(jax.vmap(lambda a: model_lib._shape(net, params, a, ones))(
+    mean = np.asarray(model_lib.mean_shape(net, params, ones))
+    basis = np.asarray(jax.vmap(lambda a: model_lib.canonical_shape(net, params, a, ones))(
         jnp.eye(cfg.shape_basis_size))) - mean  # (D, N, 3)
     x = pred["shape_canonical"].astype(np.float64)
     size = float(np.sqrt(np.mean(np.sum((x - x.mean(1, keepdims=True)) ** 2, -1))))
@@ -630,7 +629,7 @@ def mirror_cost(run: str) -> list[float]:
             def per(r):
                 alpha = net.apply(m.variables, shape @ r.T, False, method="psi")
                 return jnp.sqrt(jnp.mean(jnp.sum(
-                    (model_lib._shape(net, params, alpha, ones) - shape) ** 2, -1)))
+                    (model_lib.canonical_shape(net, params, alpha, ones) - shape) ** 2, -1)))
             return jnp.mean(jax.vmap(per)(rots))
         return jax.vmap(one)(shapes)
 
@@ -643,7 +642,7 @@ def mirror_cost(run: str) -> list[float]:
         psi_own=np.asarray(psi_error(jnp.asarray(x, jnp.float32))),
         psi_mirror=np.asarray(psi_error(jnp.asarray(mirror, jnp.float32))),
         deform_own=rms(x, mean), deform_mirror=rms(mirror, mean))
-    per = _per_view(pred["shape_image_coord"], views)
+    per = _per_view(pred["shape_3d"], views)
     truth_side = per["mpjpe_orig"] <= per["mpjpe_flip"]
     if truth_side.mean() < 0.5:  # the model's majority is the truth's mirror: name it so
         truth_side = ~truth_side
@@ -669,12 +668,12 @@ def _mirror_in_span(shapes: np.ndarray, mean: np.ndarray, basis: np.ndarray, n_i
     rot = baselines.kabsch(centred, fit - fit.mean(1, keepdims=True))
     return fit, rot
 
-# The human bodies of ``model.HANDEDNESS_REFERENCES`` (``handedness``' last columns).
-BODIES = tuple(name for name, n in model_lib.HANDEDNESS_REFERENCES.items() if n is not None)
+# The human bodies of ``lift_lib.HANDEDNESS_REFERENCES`` (``handedness``' last columns).
+BODIES = tuple(name for name, n in lift_lib.HANDEDNESS_REFERENCES.items() if n is not None)
 
 
 def handedness(run: str) -> list[float]:
-    """Sign agreement and no-flip error without and with ``test_time_one_handedness``, then
+    """Sign agreement and no-flip error without and with ``inference.one_handedness``, then
     with the handedness of each of the built-in humans' average bodies (``BODIES``: the
     Human3.6M and COCO joint orders; models of 17 points only, NaN for others), and the
     flip-resolved error (the same every way)."""
@@ -682,12 +681,13 @@ def handedness(run: str) -> list[float]:
     out = []
     for on, reference in ((False, "mean_shape"), (True, "mean_shape"),
                           *((True, body) for body in BODIES)):
-        if model_lib.reference_problem(reference, model.config.n_keypoints):
+        options = dataclasses.replace(model.inference, one_handedness=on,
+                                      handedness_reference=reference)
+        if lift_lib.problems(options, model.config):
             out += [float("nan")] * 2
             continue
-        m = model.replace(config=dataclasses.replace(
-            model.config, test_time_one_handedness=on, test_time_handedness_reference=reference))
-        per = _per_view(c3dpo_jax.reconstruct(m, test.kp, test.vis).shape_3d, test)
+        per = _per_view(c3dpo_jax.reconstruct(model.replace(inference=options), test.kp,
+                                              test.vis).shape_3d, test)
         out += [float(np.mean(per["mpjpe_orig"] <= per["mpjpe_flip"])),
                 float(np.mean(per["mpjpe_orig"]))]
     return out + [float(np.mean(np.minimum(per["mpjpe_orig"], per["mpjpe_flip"])))]
@@ -695,7 +695,7 @@ def handedness(run: str) -> list[float]:
 
 def one_example_body(run: str) -> list[float]:
     """The no-flip error with the model's own handedness, with its mean shape's
-    (``test_time_one_handedness``), and with the handedness of one 3D example of the points
+    (``inference.one_handedness``), and with the handedness of one 3D example of the points
     (``handedness_reference=body``): the first frame of each clip of the run's motion capture
     in turn, the lowest, median and highest of those; then the flip-resolved error."""
     _, path = _mocap_run(run, "onebody")

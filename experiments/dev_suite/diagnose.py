@@ -24,8 +24,8 @@ Written to ``DIAG_OUT/diagnostics.jsonl``, one record per evaluation and split:
 - ``alpha_rms``: RMS of the shape coefficients times the basis norm (the size of the
   deformations), ``mean_canon_size``: RMS radius of the canonical shapes.
 
-The canonical shapes are the model's own (``model.own_handedness``: before
-``test_time_one_handedness`` mirrors a view to a body's handedness, which would count as
+The canonical shapes are the model's own (``lift.own_handedness``: before
+``inference.one_handedness`` mirrors a view to a body's handedness, which would count as
 spread and rotation between views of one frame). ``sign_agreement_own`` is the sign
 agreement of the model's own depths (those views' depths mirrored back),
 ``sign_agreement`` that of the inference the config asks for.
@@ -46,7 +46,15 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import literal, override, run_main  # noqa: E402
 
-from c3dpo_jax import baselines, evaluation, model, run_records, train  # noqa: E402
+from c3dpo_jax import (  # noqa: E402
+    baselines,
+    evaluation,
+    inference,
+    lift,
+    resolve,
+    run_records,
+    train,
+)
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -87,11 +95,11 @@ def _sign_agreement(per: dict) -> float:
 
 
 def measure(pred: dict, data, views_per_frame: int, protocol: str) -> dict:
-    """The module docstring's measures of ``pred`` (``train.predict``'s outputs)."""
-    res = evaluation.evaluate(pred["shape_image_coord"], data, protocol)
-    per = _per_view(pred["shape_image_coord"], data)
-    own_3d = model.own_handedness(pred["shape_image_coord"], pred["handedness_flipped"])
-    canon = model.own_handedness(pred["shape_canonical"], pred["handedness_flipped"])
+    """The module docstring's measures of ``pred`` (``inference.predict_split``'s outputs)."""
+    res = evaluation.evaluate(pred["shape_3d"], data, protocol)
+    per = _per_view(pred["shape_3d"], data)
+    own_3d = lift.own_handedness(pred["shape_3d"], pred["handedness_flipped"])
+    canon = lift.own_handedness(pred["shape_canonical"], pred["handedness_flipped"])
     canon = canon / pred["kp_scale"][:, None, None]  # the data's units
     canon = canon - canon.mean(1, keepdims=True)
     out = dict(mpjpe=res["mpjpe"], mpjpe_orig=float(per["mpjpe_orig"].mean()),
@@ -138,15 +146,16 @@ def main(argv):
     n = min(FLAGS.n_train_views, len(train_data)) // vpf * vpf
     start = np.random.default_rng(0).integers(0, (len(train_data) - n) // vpf + 1) * vpf
     train_sub = train_data.subset(np.arange(start, start + n))  # whole frames, in order
-    c = train.resolve_from_data(c, train_data)
+    c = resolve.resolve_from_data(c, train_data)  # once, before training
     spec = train.RunSpec.from_config(c)
+    options = lift.inference_config(spec.model, spec.inference)
     os.makedirs(FLAGS.diag_out, exist_ok=True)
     records = _Records(os.path.join(FLAGS.diag_out, "diagnostics.jsonl"))
 
     def after_evaluation(record, state):
         variables = jax.device_get(state.variables)
         for split, data in (("train", train_sub), ("test", test_data)):
-            pred = train.predict(variables, data, spec.model)
+            pred = inference.predict_split(variables, data, spec.model, options)
             row = dict(step=record["step"], split=split,
                        **measure(pred, data, vpf, info["protocol"]))
             records.write(row)

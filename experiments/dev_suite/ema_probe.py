@@ -25,7 +25,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import run_main  # noqa: E402
 
-from c3dpo_jax import train  # noqa: E402
+from c3dpo_jax import lift, resolve, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -40,8 +40,9 @@ def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     test_data = json_dataset.load(info["test"])
-    c = train.resolve_from_data(c, json_dataset.load(info["train"]))
+    c = resolve.resolve_from_data(c, json_dataset.load(info["train"]))  # once, before training
     spec = train.RunSpec.from_config(c)
+    options = lift.inference_config(spec.model, spec.inference)
     taus = [float(t) for t in FLAGS.taus]
     emas, last = {}, {"step": 0}
     os.makedirs(FLAGS.ema_out, exist_ok=True)
@@ -65,7 +66,7 @@ def main(argv):
                "raw_mirrored": record.get("mirrored")}
         for tau, params in emas.items():
             res = train.evaluate_split({"params": params, "batch_stats": stats}, test_data,
-                                       spec.model, info["protocol"])
+                                       spec.model, options, info["protocol"])
             row[f"ema{int(tau)}"] = res["mpjpe"]
         with open(path, "a") as f:
             f.write(json.dumps(row) + "\n")

@@ -204,9 +204,9 @@ def expected_config(base: dict, data: dict, overrides: list[str], seed) -> dict:
         config.pop(key, None)
     if config.get("model.keypoint_rescale") == 0:  # resolved from the training data
         config.pop("model.keypoint_rescale")
-    if config.get("model.test_time_handedness_reference") == "auto":  # the same, with its
-        config.pop("model.test_time_handedness_reference")  # one handedness setting
-        config.pop("model.test_time_one_handedness", None)
+    if config.get("inference.handedness_reference") == "auto":  # the same, with its
+        config.pop("inference.handedness_reference")  # one handedness setting
+        config.pop("inference.one_handedness", None)
     if config.get("model.keypoint_scaling") == "auto":  # the same
         config.pop("model.keypoint_scaling")
     return config

@@ -66,7 +66,7 @@ def model_config(spec: str):
         config.train.num_steps = FLAGS.num_steps
     config.seed = FLAGS.seed
     config.train.progress_bar = False
-    config.model.test_time_refine_iters = 0  # Phi's single pass: what Psi is measured against
+    config.inference.refine_iters = 0  # Phi's single pass: what Psi is measured against
     return config
 
 

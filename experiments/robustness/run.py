@@ -127,7 +127,7 @@ def command(cell: dict, workdir: str, seed: int) -> list[str]:
             f"--config.train.samples_per_epoch={256 * steps // 5}",
             "--config.train.epochs=5", "--config.optim.lr_milestones=(4,)",
             "--config.train.eval_every_steps=0", "--config.train.eval_every_epochs=0",
-            "--config.model.test_time_refine_iters=0"]  # Phi's single pass, as the tables
+            "--config.inference.refine_iters=0"]  # Phi's single pass, as the tables
 
 
 def score(workdir: str, make) -> dict:

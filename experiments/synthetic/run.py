@@ -8,8 +8,8 @@ Each run is the README's quick-start command with ``--config.seed=S`` and ``--no
 (``--jobs`` at a time, each pinned to one core; a finished run is not run again). Each
 finished checkpoint is then scored again with two other inference options, without
 retraining (``train.evaluate_checkpoint``; kept in ``WORKDIR/inference.json``): Phi's single
-pass (``model.test_time_refine_iters=0``, the release's inference) and one handedness for
-every view (``model.test_time_one_handedness=True``). The table goes to
+pass (``inference.refine_iters=0``, the release's inference) and one handedness for
+every view (``inference.one_handedness=True``). The table goes to
 ``--synthetic_out``/synthetic.md, with the command, the CPU and the jax version.
 """
 
@@ -30,8 +30,8 @@ from runner import cpu_model, is_finished, literal, override, run_all, run_main 
 # Row name -> the config's variant (configs/default.py's apply_variants).
 METHODS = {"C3DPO": "", "C3DPO-equiv": "equiv", "C3DPO-base": "base"}
 # Inference options scored again on each checkpoint: name -> config overrides.
-INFERENCE = {"one_pass": {"test_time_refine_iters": 0},
-             "one_handedness": {"test_time_one_handedness": True}}
+INFERENCE = {"one_pass": {"refine_iters": 0},
+             "one_handedness": {"one_handedness": True}}
 
 
 def run_name(method: str, seed: int) -> str:
@@ -75,7 +75,7 @@ def other_inference(method: str, seed: int, workdir: str, extra: list[str]) -> d
         config = cli.get_config(config_spec(method))
         config.unlock()
         override(config, {**_overrides(extra), "seed": seed,
-                          **{f"model.{k}": v for k, v in options.items()}})
+                          **{f"inference.{k}": v for k, v in options.items()}})
         scores[name] = train.evaluate_checkpoint(config, workdir, save=False)["final"]
     with open(path, "w") as f:
         json.dump(scores, f, indent=1)

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
 
-from c3dpo_jax import baselines, evaluation, model, train
+from c3dpo_jax import baselines, evaluation, inference, lift, model, resolve
 
 FLAGS = flags.FLAGS
 
@@ -90,21 +90,22 @@ def rigid_residual_2d(mean_shape: np.ndarray, kp: np.ndarray, vis: np.ndarray) -
     return float((np.linalg.norm(xy - kp, axis=-1) * vis).sum() / vis.sum())
 
 
-def diagnose(variables, train_data, test_data, protocol: str, model_cfg, noise_var: float):
+def diagnose(variables, train_data, test_data, protocol: str, model_cfg, options,
+             noise_var: float):
     def score(pred, data=test_data):
         return float(evaluation.evaluate(np.asarray(pred), data, protocol)["mpjpe"])
 
-    pred = {k: np.asarray(v, np.float64)
-            for k, v in train.predict(variables, test_data, model_cfg).items()}
+    pred = {k: np.asarray(v, np.float64) for k, v in inference.predict_split(
+        variables, test_data, model_cfg, options).items()}
     every5 = train_data.subset(np.arange(0, len(train_data), 5))
     mean_shape = baselines.procrustes_mean_shape(train_data.kp3d)
     pca = baselines.pca_shape_basis(train_data.kp3d, model_cfg.shape_basis_size)
     canon = pred["shape_canonical"]
     own = learnt_basis(variables, model_cfg, pred["alpha"], noise_var)
     return {
-        "network": score(pred["shape_image_coord"]),
-        "network, training views": score(
-            train.predict(variables, every5, model_cfg)["shape_image_coord"], every5),
+        "network": score(pred["shape_3d"]),
+        "network, training views": score(inference.predict_split(
+            variables, every5, model_cfg, options)["shape_3d"], every5),
         "camera refit": score(baselines.fit_mean_shape(canon, test_data.kp, test_data.vis)),
         "learnt basis refit": score(baselines.fit_shape_basis(own, test_data.kp, test_data.vis)),
         "canonical shapes, oracle rotation": score(oracle_rotation(canon, test_data.kp3d)),
@@ -127,10 +128,13 @@ def main(argv):
     train_data, test_data, protocol = run.load_dataset(
         FLAGS.dataset, FLAGS.views_per_frame, FLAGS.cameras, FLAGS.data_seed)
     c = run.recipe_config(FLAGS.recipe, FLAGS.dataset, train_data.n_keypoints, protocol)
-    model_cfg = model.ModelConfig.from_dict(train.resolve_from_data(c, train_data).model)
+    c = resolve.resolve_from_data(c, train_data)
+    model_cfg = model.ModelConfig.from_dict(c.model)
+    options = lift.inference_config(model_cfg, lift.InferenceConfig.from_dict(c.inference))
     with open(FLAGS.variables, "rb") as f:
         variables = flax.serialization.msgpack_restore(f.read())
-    result = diagnose(variables, train_data, test_data, protocol, model_cfg, FLAGS.noise_var)
+    result = diagnose(variables, train_data, test_data, protocol, model_cfg, options,
+                      FLAGS.noise_var)
     width = max(map(len, result))
     for name, value in result.items():
         print(f"{name:<{width}}  {value:.4f}")

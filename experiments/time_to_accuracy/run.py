@@ -144,7 +144,7 @@ def recipe_config(recipe: str, dataset: str, n_keypoints: int, protocol: str):
             samples_per_epoch=1_249_280, epochs=90, milestones=(60, 80), protocol=protocol)
     elif dataset == "humans":  # the built-in dataset's own config (cpu_recipe + its loss weight)
         c = humans_config.get_config()
-        c.model.test_time_refine_iters = 0  # the cpu recipe: Phi's single pass, as elsewhere
+        c.inference.refine_iters = 0  # the cpu recipe: Phi's single pass, as elsewhere
     else:
         c = default.cpu_recipe(default.get_config())
     if FLAGS.supervised:
