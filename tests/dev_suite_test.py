@@ -58,9 +58,12 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     assert (info["n_train"], info["n_test"]) == (48 * 3, 12 * 3)
     row = next(line for line in proc.stdout.splitlines() if line.startswith("| cmu131"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert len(cells) == 15 and cells[1] == "1"
+    assert len(cells) == 17 and cells[1] == "1"
     assert all(c != "-" and "nan" not in c for c in cells)  # the run reports "mirrored" too
-    assert 0.0 <= float(cells[10]) <= 1.0
+    assert 0.0 <= float(cells[11]) <= 1.0
+    # The error up to one mirror flip is the split as it is or all mirrored: at least the
+    # paper's per-view flip, at most the error as it is.
+    assert float(cells[8]) <= float(cells[7]) + 1e-3 and float(cells[7]) <= float(cells[9]) + 1e-3
     assert (out / "lr.md").read_text().count("| cmu131 |") == 1
     assert "Made by `python experiments/dev_suite/suite.py " in (out / "lr.md").read_text()
     # The variant's file keeps every finished run when the table asked for has fewer.

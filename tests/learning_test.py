@@ -26,7 +26,8 @@ def test_training_with_the_3d_truth_learns_the_depth_sign(tmp_path):
     # Without the truth the sign of a view's depth is a guess (mpjpe_orig far above mpjpe on
     # mirrored views); with it the prediction itself is the better of the two.
     assert final["mpjpe_orig"] <= 1.02 * final["mpjpe"], final
-    assert final["mpjpe"] < 0.6 * results["baselines"]["fitted mean shape"]["mpjpe"], final
+    # Against the rigid fit with one scale for the split, the stronger of the two rigid fits.
+    assert final["mpjpe"] < 0.7 * results["baselines"]["fitted mean shape"]["mpjpe"], final
 
 
 def test_training_on_synthetic_data_beats_the_mean_shape_baseline(tmp_path):

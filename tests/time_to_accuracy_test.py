@@ -52,7 +52,7 @@ def test_replayed_run_evaluates_at_the_calibrated_steps_and_reports(tmp_path):
     assert result["config"]["model"]["n_fully_connected"] == 32
     assert result["machine"]["cpu"] and result["machine"]["cores"] >= 1  # how it was made
     assert set(result["baselines"]) == {"zero depth", "fitted mean shape", "oracle mean shape",
-                                        "fitted PCA basis"}
+                                        "fitted PCA basis", "fitted mean shape, per-view scale"}
     assert all(np.isfinite(p["mpjpe"]) for p in result["curve"])
     # The rigidly fitted mean shape keeps the observed x, y: it beats zero depth here.
     assert result["baselines"]["fitted mean shape"] < result["baselines"]["zero depth"]

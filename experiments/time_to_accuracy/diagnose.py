@@ -113,7 +113,7 @@ def diagnose(variables, train_data, test_data, protocol: str, model_cfg, options
             np.broadcast_to(mean_shape, canon.shape), test_data.kp3d)),
         "PCA basis, oracle 3D fit": score(pca_oracle_fit(pca, test_data.kp3d)),
         "fitted mean shape (baseline)": score(
-            baselines.fit_mean_shape(mean_shape, test_data.kp, test_data.vis)),
+            baselines.fit_mean_shape_one_scale(mean_shape, test_data.kp, test_data.vis)),
         "2D reprojection, network": evaluation.reprojection_error(
             pred["kp_reprojected"], test_data),
         "2D residual, fitted mean shape": rigid_residual_2d(
