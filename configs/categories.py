@@ -5,9 +5,9 @@
 
 Five classes (aeroplane 8, bottle 7, car 12, chair 10, diningtable 8 keypoints) packed
 into one 45-keypoint layout with ``class_mask``; samples drawn class-balanced; the
-``pascal3d`` protocol averages the error per class. CPU-sized networks and Adam. At
-inference each view's camera and coefficients are refined from Phi's output
-(``default.refined_inference``; its evidence is experiments/dev_suite's);
+``pascal3d`` protocol averages the error per class. The CPU recipe
+(``default.cpu_recipe``). At inference each view's camera and coefficients are refined from
+Phi's output (``default.refined_inference``);
 ``--config.inference.refine_iters=0`` gives Phi's single pass.
 """
 

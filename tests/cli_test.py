@@ -210,7 +210,7 @@ def test_main_from_another_directory_reads_the_bundled_config_and_reports_input_
     assert bad_variant.returncode == 2
     assert bad_variant.stderr.startswith("error: flag --config=") and bad_variant.stderr.endswith(
         "ValueError: unknown config variant(s) ['smok']; known: ('smoke', 'base', 'equiv', "
-        "'full', 'supervised')\n")
+        "'full', 'paper', 'supervised')\n")
     stray = subprocess.run([*args, "--config.model.canonicalization", "False"], cwd=tmp_path,
                            env=env, capture_output=True, text=True, timeout=300)
     assert stray.returncode == 2

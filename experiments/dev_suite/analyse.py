@@ -716,6 +716,42 @@ def one_example_body(run: str) -> list[float]:
     return [own, mean_shape, bodies.min(), float(np.median(bodies)), bodies.max(), resolved]
 
 
+
+REFERENCE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global", "as it is",
+                     "as it is, the reference's one decision", "the reference per view",
+                     "the mean shape per view", "reference: 0 built-in body, 1 a 3D example"]
+
+
+def reference(run: str) -> list[float]:
+    """Test errors of a run against the 3D truth: the paper's per-view flip, the split as it
+    is or all mirrored (``mpjpe_global``), and as it is: the model's own views, then with a
+    reference's handedness, one decision for the model (``one_handedness=False``: its mean
+    shape against the reference) and per view (``one_handedness=True``), and the mean shape's
+    per view. The reference: the built-in h36m body for the 17-joint human sets, else one 3D
+    example, the sequence's first frame (its own units and orientation)."""
+    test, model = _test_split_and_model(run)
+    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    if model.config.n_keypoints == 17 and dataset in ("cmu131", "humans", "humans_v3"):
+        body, kind = "h36m", 0.0
+    else:
+        full = suite._source(suite.SCALED.get(dataset, dataset))[0].removesuffix("_clips")
+        folder = "nrsfm" if full in suite.NRSFM else "mocap"
+        with np.load(os.path.join(FLAGS.data_root, folder, f"{full}.npz")) as z:
+            body, kind = np.swapaxes(z["X"], 1, 2)[0], 1.0
+
+    def as_is(**options):
+        options = dict(dict(one_handedness=False, handedness_reference="mean_shape"), **options)
+        per = _per_view(c3dpo_jax.reconstruct(model, test.kp, test.vis, **options).shape_3d,
+                        test)
+        return per
+
+    own = as_is()
+    orig, flip = float(np.mean(own["mpjpe_orig"])), float(np.mean(own["mpjpe_flip"]))
+    return [float(np.mean(np.minimum(own["mpjpe_orig"], own["mpjpe_flip"]))), min(orig, flip),
+            orig, float(np.mean(as_is(handedness_reference=body)["mpjpe_orig"])),
+            float(np.mean(as_is(handedness_reference=body, one_handedness=True)["mpjpe_orig"])),
+            float(np.mean(as_is(one_handedness=True)["mpjpe_orig"])), kind]
+
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
 _H36M_PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
 PARENTS = {
@@ -964,6 +1000,7 @@ def _run_tables() -> dict:
         "bones": (BONES_COLUMNS, bones),
         "relift": (RELIFT_COLUMNS, relift),
         "mirror": (MIRROR_COLUMNS, mirror_cost),
+        "reference": (REFERENCE_COLUMNS, reference),
     }
 
 
