@@ -25,7 +25,7 @@ import numpy as np
 from absl import logging
 from jax.typing import ArrayLike
 
-from c3dpo_jax import checkpoint, inference, lift, model
+from c3dpo_jax import checkpoint, inference, lift, model, run_config
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.model import ModelConfig
 
@@ -70,14 +70,14 @@ class Reconstruction(NamedTuple):
 def split_path(path: str) -> tuple[str, int | None]:
     """``workdir`` or ``workdir/checkpoints/<step>`` -> (workdir, step or None)."""
     path = os.path.abspath(os.path.expanduser(path))
-    if os.path.exists(os.path.join(path, checkpoint.CONFIG_FILE)):
+    if os.path.exists(os.path.join(path, run_config.CONFIG_FILE)):
         return path, None
     parent, step = os.path.split(path)
     workdir, ckpt_dir = os.path.split(parent)
     if ckpt_dir == checkpoint.CHECKPOINT_DIR and step.isdigit():
         return workdir, int(step)
     raise FileNotFoundError(
-        f"{path!r} is neither a workdir (with {checkpoint.CONFIG_FILE}) nor a "
+        f"{path!r} is neither a workdir (with {run_config.CONFIG_FILE}) nor a "
         f"checkpoint step directory (WORKDIR/{checkpoint.CHECKPOINT_DIR}/<step>)"
     )
 
@@ -85,9 +85,9 @@ def split_path(path: str) -> tuple[str, int | None]:
 def load(path: str) -> C3DPOParams:
     """Loads a trained model from a workdir (latest step) or one checkpoint step dir."""
     workdir, step = split_path(path)
-    config = checkpoint.load_config(workdir)
+    config = run_config.load_config(workdir)
     if config is None or "model" not in config:
-        raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")
+        raise ValueError(f"{workdir}/{run_config.CONFIG_FILE} has no 'model' section")
     model_cfg = ModelConfig.from_dict(config["model"])
     options = lift.inference_config(
         model_cfg, InferenceConfig.from_dict(lift.saved_options(config)))
@@ -112,9 +112,9 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
     config = json.loads(json.dumps(dict(config_dict or {}), default=list))
     config["model"] = params.config.to_dict()
     config["inference"] = params.inference.to_dict()
-    config["software"] = [checkpoint.software_record()]  # what wrote it (e.g. a conversion)
+    config["software"] = [run_config.software_record()]  # what wrote it (e.g. a conversion)
     os.makedirs(workdir, exist_ok=True)
-    checkpoint.save_config(workdir, config)
+    run_config.save_config(workdir, config)
     checkpoint.save_variables(workdir, params.variables)
     return workdir
 

@@ -48,6 +48,7 @@ from c3dpo_jax import (
     evaluation,
     lift,
     model,
+    run_config,
     run_records,
     validation,
     workdir_lock,
@@ -372,8 +373,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
-    scale_from = (checkpoint.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
-                  checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
+    scale_from = (run_config.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
+                  run_config.load_config(split_path(init_from)[0]) if init_from else None)
     config = resolve_from_data(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
     options = lift.inference_config(spec.model, spec.inference)
@@ -389,8 +390,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data),
                   data_files={k: os.path.abspath(config.data[k])
                               for k in ("train_path", "test_path") if config.data[k]})
-    checkpoint.check_workdir(workdir, record)
-    record["software"] = checkpoint.software_history(workdir)
+    run_config.check_workdir(workdir, record)
+    record["software"] = run_config.software_history(workdir)
     if spec.model.projection_type != "perspective" and train_data.intrinsics is not None:
         logging.warning("the training data has intrinsics (K) and the model is orthographic, "
                         "which ignores them (--config.model.projection_type=perspective uses "
@@ -400,7 +401,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     _check_data(test_data, spec.model, "test")
     # Written once every check has passed: a refused run leaves no folder behind (the lock
     # removes the workdir it made when nothing was written into it).
-    checkpoint.save_config(workdir, record)
+    run_config.save_config(workdir, record)
     init_key, train_key = jax.random.split(jax.random.key(config.seed))
     manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
     state = checkpoint.restore_or_init(
@@ -530,7 +531,7 @@ def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
                 if k not in model.MOVED_TO_INFERENCE and k not in _SCORING_OPTIONS}
 
     now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
-    diffs = checkpoint.differences({"model": network(saved["model"])}, {"model": network(now)})
+    diffs = run_config.differences({"model": network(saved["model"])}, {"model": network(now)})
     if not diffs:
         return
     trained = model.variables_shape(model.ModelConfig.from_dict(saved["model"]))
@@ -569,7 +570,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     _check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
     _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
-    saved = checkpoint.load_config(workdir)
+    saved = run_config.load_config(workdir)
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
     model_cfg = spec.model

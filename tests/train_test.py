@@ -458,7 +458,7 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
     """train.init_from: a new run starts from the source's parameters (at a learning rate of
     1e-9 they stay), with the source's input scale; a model of another architecture is a
     one-line error naming the setting."""
-    from c3dpo_jax import checkpoint, load
+    from c3dpo_jax import load, run_config
     from c3dpo_jax.data import auto_keypoint_rescale, load_splits
 
     source = str(tmp_path / "source")
@@ -470,7 +470,7 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
     assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
     theirs, ours = (load(str(tmp_path / d)).variables for d in ("source", "tuned"))
     chex.assert_trees_all_close(ours["params"], theirs["params"], atol=1e-6)
-    scales = [checkpoint.load_config(str(tmp_path / d))["model"]["keypoint_rescale"]
+    scales = [run_config.load_config(str(tmp_path / d))["model"]["keypoint_rescale"]
               for d in ("source", "tuned")]
     assert scales[0] == scales[1]
     assert auto_keypoint_rescale(load_splits(c.data)[0]) != scales[0]
