@@ -475,7 +475,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                         history.append(evaluate(state, step))
                         logging.info("test at step %d: %s", step, _scores(history[-1]))
                         run_records.write_results(workdir, {"history": history})
-                        writer.events.scalars(step, history[-1], prefix="test/")
+                        writer.scalars(step, history[-1], prefix="test/")
                         if hooks.after_evaluation is not None:
                             hooks.after_evaluation(history[-1], state)
                     tic = time.perf_counter()
@@ -484,12 +484,14 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         writer.flush()
     except BaseException:  # a diverged loss (FloatingPointError), a hook's exception, Ctrl-C
         close()
+        writer.close()
         raise
     train_s += time.perf_counter() - tic
     close()
     if step < total and signals.received is None:  # a hook's stop (a signal's: Interrupted)
         logging.info("stopped early at step %d of %d", step, total)
     if signals.received is not None:
+        writer.close()
         name = signal.Signals(signals.received).name
         raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
                           "the same command resumes from it", 128 + signals.received)
@@ -497,13 +499,13 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         final = history[-1]
     else:
         final = evaluate(state, step)
-        writer.events.scalars(step, final, prefix="test/")
+        writer.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
     results = {"history": history, "final": final,
                "baselines": evaluate_baselines(train_data, test_data, protocol)}
     run_records.write_results(workdir, results)
-    writer.events.close()
+    writer.close()
     return results
 
 

@@ -218,7 +218,7 @@ def test_a_workdir_that_is_a_file_is_named(tmp_path):
             run(_tiny_config(5), str(tmp_path / "file"))
 
 
-def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path):
+def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path, read_scalars):
     c = _tiny_config(20)
     c.train.eval_every_steps = 5
     whole = train.train_and_evaluate(c, str(tmp_path / "whole"))
@@ -237,9 +237,7 @@ def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path)
     assert [h["step"] for h in resumed["history"]] == [5, 10, 15]
     assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
     # TensorBoard, next to metrics.jsonl, shows the resumed run as one run.
-    from c3dpo_jax import tensorboard
-
-    curves = tensorboard.read_scalars(str(tmp_path / "split"))
+    curves = read_scalars(tmp_path / "split")
     assert [s for s, _ in curves["loss/reprojection"]] == [5, 10, 15, 20]
     assert curves["test/mpjpe"] == [(h["step"], pytest.approx(h["mpjpe"], rel=1e-6))
                                     for h in [*resumed["history"], resumed["final"]]]
