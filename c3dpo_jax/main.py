@@ -109,11 +109,7 @@ def main(argv):
     if verbose:
         logging.info("config:\n%s", config)
     if _MODE.value == "train":
-        try:
-            results = train.train_and_evaluate(config, _WORKDIR.value)
-        except train.Interrupted as err:  # Ctrl-C or SIGTERM: checkpointed, resumable
-            print(str(err), file=sys.stderr)
-            sys.exit(err.exit_code)
+        results = train.train_and_evaluate(config, _WORKDIR.value)  # cli.run: Ctrl-C, SIGTERM
         if _FIGURES.value:
             _write_figures(config, _WORKDIR.value)
     else:

@@ -29,9 +29,7 @@ import dataclasses
 import importlib.util
 import json
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 
@@ -50,6 +48,7 @@ from c3dpo_jax import (
     model,
     run_config,
     run_records,
+    stops,
     validation,
     workdir_lock,
 )
@@ -284,52 +283,6 @@ def _data_parallel_mesh(config) -> Mesh | None:
     return device_data.make_mesh(n)
 
 
-class Interrupted(Exception):
-    """Training stopped by SIGINT or SIGTERM after checkpointing the step it had reached;
-    ``exit_code`` is the shell's code for that signal (130, 143)."""
-
-    def __init__(self, message: str, exit_code: int):
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
-class _StopSignals:
-    """While active, SIGINT (Ctrl-C) and SIGTERM only record that a stop was asked for, so
-    the loop can finish its chunk, checkpoint and stop. A second signal within
-    ``REPEAT_S`` of the first is the same request delivered twice (``timeout`` and batch
-    schedulers signal the process and then its process group) and is ignored; a later one
-    acts as usual (Ctrl-C twice: a traceback now). Only in the main thread (elsewhere
-    signals cannot be caught)."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-    REPEAT_S = 1.0
-
-    def __init__(self):
-        self.received, self.received_at, self.previous = None, 0.0, {}
-
-    def _handle(self, signum, frame):
-        now = time.monotonic()
-        if self.received is None:
-            self.received, self.received_at = signum, now
-            return
-        if now - self.received_at < self.REPEAT_S:
-            return
-        for sig, handler in self.previous.items():  # the usual behaviour, for this one too
-            signal.signal(sig, handler)
-        if signum == signal.SIGINT:  # unwinds through the loop's clean-up (saves finished)
-            raise KeyboardInterrupt
-        signal.raise_signal(signum)
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
-        return self
-
-    def __exit__(self, *exc):
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-
-
 def _start_from(state: TrainState, path: str) -> TrainState:
     """``state`` with the parameters and BatchNorm statistics of the model at ``path`` (a
     workdir or one of its checkpoint steps; ``train.init_from``), the optimiser fresh."""
@@ -450,7 +403,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
 
     tic = time.perf_counter()
     try:
-        with _StopSignals() as signals:
+        with stops.StopRequests() as signals:
             while step < total:
                 stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
                                                 spec.eval_every))
@@ -460,9 +413,9 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                 if hooks.after_chunk is not None:
                     hooks.after_chunk(step, state)
                 clock = train_s + time.perf_counter() - tic
-                stopping = signals.received is not None or (
+                stopping = signals.requested or (
                     hooks.should_stop is not None and hooks.should_stop(step, clock))
-                evaluating = step < total and signals.received is None and (
+                evaluating = step < total and not signals.requested and (
                     (spec.eval_every and step % spec.eval_every == 0)
                     or (hooks.should_evaluate is not None and hooks.should_evaluate(step, clock)))
                 if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
@@ -488,13 +441,11 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         raise
     train_s += time.perf_counter() - tic
     close()
-    if step < total and signals.received is None:  # a hook's stop (a signal's: Interrupted)
+    if step < total and not signals.requested:  # a hook's stop (a signal's: Interrupted)
         logging.info("stopped early at step %d of %d", step, total)
-    if signals.received is not None:
+    if signals.requested:
         writer.close()
-        name = signal.Signals(signals.received).name
-        raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
-                          "the same command resumes from it", 128 + signals.received)
+        signals.raise_if_requested(step, total)
     if history and history[-1]["step"] == step:  # stopped at an evaluation: no second one
         final = history[-1]
     else:
