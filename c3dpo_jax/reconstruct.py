@@ -308,10 +308,7 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K, body):
 # The median distance of the views' canonical shapes to a body of ``HANDEDNESS_REFERENCES``
 # (each shape and the body centred and scaled to unit norm, after the best rotation or
 # reflection: 0 for copies of the body, at most sqrt(2)) above which the points are
-# probably in another joint order. Views of real people in the body's order, "h36m": medians
-# 0.20-0.40 (the default recipe's models of CMU subject 131 and the built-in humans, seeds
-# 0-2); the same views with their points shuffled: 1.25-1.34. "coco": CMU 131's people in
-# COCO's order 0.36, the h36m body for them 0.96.
+# probably in another joint order (evidence: experiments/dev_suite/handedness.md).
 BODY_DISTANCE_WARNING = 0.8
 
 

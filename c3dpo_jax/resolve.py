@@ -17,10 +17,10 @@ from absl import logging
 from c3dpo_jax import baselines, lift
 from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, bodies
 
-# experiments/dev_suite, "The handedness of a human body".
+# Evidence: experiments/dev_suite/handedness.md, "The handedness of a human body".
 BODY_FIT_2D = 0.6  # resolve_handedness: a body's fit below it names the views' joint order
 BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
-# experiments/dev_suite, "People at different distances".
+# Evidence: experiments/dev_suite/data_variants.md, "People at different distances".
 ALIKE_SIZE_RATIO = 1.18  # resolve_keypoint_scaling: views' size ratio above it, per view
 
 
