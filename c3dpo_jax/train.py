@@ -26,10 +26,8 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 """
 
 import dataclasses
-import importlib.util
 import json
 import os
-import sys
 import time
 from collections.abc import Callable
 
@@ -46,6 +44,7 @@ from c3dpo_jax import (
     evaluation,
     lift,
     model,
+    progress,
     run_config,
     run_records,
     stops,
@@ -153,39 +152,6 @@ def _next_stop(step: int, total: int, intervals) -> int:
     """The first step after ``step`` that is a multiple of an interval, or ``total``."""
     stops = [total] + [(step // i + 1) * i for i in intervals if i > 0]
     return min(stops)
-
-
-class _BarLines:
-    """The progress bar's stream where stderr is a file or a pipe (a log, ``| tee``, a batch
-    job): each redraw becomes one line, where a terminal's carriage returns would pile every
-    update into one line thousands of characters long."""
-
-    def __init__(self, stream):
-        self.stream, self.last = stream, ""
-
-    def write(self, text: str) -> None:
-        line = text.replace("\r", "").strip("\n")
-        if line.strip() and line != self.last:
-            self.stream.write(line + "\n")
-            self.last = line
-
-    def flush(self) -> None:
-        self.stream.flush()
-
-
-def _progress_bar(**kwargs):
-    """tqdm's widget bar in a notebook that has ipywidgets, else its text bar (importing
-    tqdm.auto would warn "IProgress not found" in every notebook without ipywidgets); where
-    stderr is not a terminal (nor a notebook), a line every 30 s (``_BarLines``)."""
-    notebook = "ipykernel" in sys.modules
-    if notebook and importlib.util.find_spec("ipywidgets") is not None:
-        from tqdm.auto import tqdm
-    else:
-        from tqdm import tqdm
-    if not notebook and not sys.stderr.isatty():
-        kwargs.update(file=_BarLines(sys.stderr), mininterval=30.0, ncols=100,
-                      dynamic_ncols=False)
-    return tqdm(**kwargs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -391,8 +357,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     if last and last.get("step") == step < total and all(h["step"] != step for h in history):
         history.append(last)  # a finished run extended: its final evaluation is on the curve
     train_s = run_records.clock_at(before, step) or 0.0
-    pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
-                disable=not config.train.progress_bar, desc="train")
+    pbar = progress.progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
+                                 disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
 
     def close() -> None:

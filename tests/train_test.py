@@ -479,18 +479,3 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
         train.train_and_evaluate(wider, str(tmp_path / "wider"))
     shutil.rmtree(source)  # a resumed run needs only its own workdir
     assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
-
-
-def test_the_progress_bar_writes_whole_lines_when_stderr_is_not_a_terminal(monkeypatch):
-    import io
-
-    stream = io.StringIO()  # a log file or a pipe: isatty() is False
-    monkeypatch.setattr("sys.stderr", stream)
-    bar = train._progress_bar(total=100, desc="train", unit="step")
-    for _ in range(4):
-        bar.update(25)
-    bar.close()
-    lines = stream.getvalue().splitlines()
-    assert "\r" not in stream.getvalue() and stream.getvalue().endswith("\n")
-    assert lines[0].startswith("train:   0%") and "100/100" in lines[-1]
-    assert len(lines) <= 3  # the start, the end, and a line per 30 s between
