@@ -33,7 +33,6 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -51,7 +50,7 @@ from c3dpo_jax import (
     validation,
     workdir_lock,
 )
-from c3dpo_jax.data import KeypointData, load_splits
+from c3dpo_jax.data import load_splits
 from c3dpo_jax.data.dataset import fingerprint
 from c3dpo_jax.inference import evaluate_baselines, evaluate_split
 from c3dpo_jax.lift import InferenceConfig
@@ -115,32 +114,6 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
         return jax.lax.scan(body, state, None, length=n_steps)
 
     return chunk
-
-
-def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
-                       n_keypoints: int) -> None:
-    """The splits' keypoint counts, against each other and then the model's: first of all,
-    since what is worked out from the data (``resolve.resolve_from_data``) assumes them
-    equal."""
-    if train_data.n_keypoints != test_data.n_keypoints:
-        raise ValueError(
-            f"the train split has {train_data.n_keypoints} keypoints and the test split "
-            f"{test_data.n_keypoints}: the two files disagree (config.data.train_path and "
-            "test_path must hold the same points)")
-    if train_data.n_keypoints != n_keypoints:
-        raise ValueError(
-            f"train split has {train_data.n_keypoints} keypoints but config.model.n_keypoints "
-            f"is {n_keypoints}; set --config.model.n_keypoints={train_data.n_keypoints}")
-
-
-def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
-                with_3d: bool = False) -> None:
-    if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
-        what = "none" if data.kp3d is None else "some that is not finite"
-        raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
-                         f"{split} split has {what} (kp_loc_3d)")
-    if model_cfg.projection_type == "perspective" and data.intrinsics is None:
-        raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
 
 
 def _scores(record: dict) -> str:
@@ -262,12 +235,6 @@ def _start_from(state: TrainState, path: str) -> TrainState:
     return state.replace(params=source["params"], batch_stats=source["batch_stats"])
 
 
-def _check_workdir_is_a_folder(workdir: str) -> None:
-    if os.path.exists(workdir) and not os.path.isdir(workdir):
-        raise ValueError(f"the workdir {workdir} is a file; --workdir names a folder (made if "
-                         "missing)")
-
-
 @model.single_precision
 def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict:
     """Trains C3DPO as ``config`` says, resuming from ``workdir`` if it has checkpoints.
@@ -280,7 +247,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     lock throughout (``workdir_lock.hold``): a second run there is refused in one line.
     """
     validation.check_config(config)
-    _check_workdir_is_a_folder(workdir)
+    validation.check_workdir_is_a_folder(workdir)
     with workdir_lock.hold(workdir):
         return _train_and_evaluate(config, workdir, hooks or Hooks())
 
@@ -288,7 +255,7 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
 def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     """``train_and_evaluate``'s run, the workdir locked."""
     train_data, test_data = load_splits(config.data)
-    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
+    validation.check_split_keypoints(train_data, test_data, config.model.n_keypoints)
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
@@ -316,8 +283,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                         "which ignores them (--config.model.projection_type=perspective uses "
                         "them)")
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
-    _check_data(train_data, spec.model, "train", with_3d=with_3d)
-    _check_data(test_data, spec.model, "test")
+    validation.check_data(train_data, spec.model, "train", with_3d=with_3d)
+    validation.check_data(test_data, spec.model, "test")
     # Written once every check has passed: a refused run leaves no folder behind (the lock
     # removes the workdir it made when nothing was written into it).
     run_config.save_config(workdir, record)
@@ -486,9 +453,9 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     from the run's, ``final["inference"]`` records those that differ, since the history's
     records were made with the run's.
     """
-    _check_workdir_is_a_folder(workdir)
+    validation.check_workdir_is_a_folder(workdir)
     train_data, test_data = load_splits(config.data)
-    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
+    validation.check_split_keypoints(train_data, test_data, config.model.n_keypoints)
     saved = run_config.load_config(workdir)
     config = resolve_from_data(config, train_data, saved)
     spec = RunSpec.from_config(config)
@@ -497,7 +464,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     template = model.variables_shape(model_cfg)
     _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
-    _check_data(test_data, model_cfg, "test")
+    validation.check_data(test_data, model_cfg, "test")
     final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     before = run_records.read_results(workdir)

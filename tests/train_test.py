@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from c3dpo_jax import device_data, model, run_records, train
+from c3dpo_jax import device_data, model, run_records, train, validation
 from c3dpo_jax.data import KeypointData, synthetic
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
@@ -444,12 +444,12 @@ def test_supervised_term_is_the_mean_distance_to_the_centred_truth(setup):
 def test_supervised_training_needs_finite_3d_points_in_the_training_split():
     data = synthetic.make_split(16, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.1,
                                 noise=0.0, perspective=False, shape_seed=0, seed=1)
-    train._check_data(data, CFG, "train", with_3d=True)
+    validation.check_data(data, CFG, "train", with_3d=True)
     for kp3d, what in ((None, "has none"), (np.full_like(data.kp3d, np.nan), "not finite")):
         bad = KeypointData(kp=data.kp, vis=data.vis, kp3d=kp3d)
         with pytest.raises(ValueError, match=f"w_supervised > 0 .* {what}"):
-            train._check_data(bad, CFG, "train", with_3d=True)
-        train._check_data(bad, CFG, "train")  # C3DPO itself never needs them
+            validation.check_data(bad, CFG, "train", with_3d=True)
+        validation.check_data(bad, CFG, "train")  # C3DPO itself never needs them
 
 
 def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
