@@ -6,7 +6,8 @@ them set: the input scale (``model.keypoint_rescale = 0``), the scaling of each 
 inference (``inference.handedness_reference``: "auto" or a body file). A run's config.json
 holds the values, so that inference, a resumed run and ``--mode=eval`` use the same ones:
 ``saved`` (a workdir's config.json) wins where it has them. ``train.train_and_evaluate``
-and ``train.evaluate_checkpoint`` call it; so do experiments that build a model by hand.
+and ``evaluate_workdir.evaluate_checkpoint`` call it; so do experiments that build a model
+by hand.
 
 Glossary: M views of the training split, N keypoints.
 """

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from c3dpo_jax import device_data, model, run_records, train, validation
+from c3dpo_jax import device_data, evaluate_workdir, model, run_records, train, validation
 from c3dpo_jax.data import KeypointData, synthetic
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
@@ -201,7 +201,7 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
     # Scoring again with other inference options says which were used: the history's
     # records were made with the run's own.
     cfg.inference.refine_iters = 3
-    again = train.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
+    again = evaluate_workdir.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
     assert again["final"]["inference"] == {"refine_iters": 3}
     assert "inference" not in whole["final"]  # main_test: nor when scored with the run's own
     # A workdir whose checkpoint is past the steps asked for is scored as it is, with a word.
@@ -213,7 +213,7 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
 
 def test_a_workdir_that_is_a_file_is_named(tmp_path):
     (tmp_path / "file").write_text("")
-    for run in (train.train_and_evaluate, train.evaluate_checkpoint):
+    for run in (train.train_and_evaluate, evaluate_workdir.evaluate_checkpoint):
         with pytest.raises(ValueError, match="is a file; --workdir names a folder"):
             run(_tiny_config(5), str(tmp_path / "file"))
 
