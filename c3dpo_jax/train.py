@@ -49,7 +49,7 @@ from c3dpo_jax import (
     validation,
     workdir_lock,
 )
-from c3dpo_jax.data import load_splits
+from c3dpo_jax.data import KeypointData, load_splits
 from c3dpo_jax.data.dataset import fingerprint
 from c3dpo_jax.inference import evaluate_baselines, evaluate_split
 from c3dpo_jax.lift import InferenceConfig
@@ -251,10 +251,10 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
         return _train_and_evaluate(config, workdir, hooks or Hooks())
 
 
-def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
-    """``train_and_evaluate``'s run, the workdir locked."""
-    train_data, test_data = load_splits(config.data)
-    validation.check_split_keypoints(train_data, test_data, config.model.n_keypoints)
+def _resolve_run(config, workdir: str, train_data: KeypointData, test_data: KeypointData):
+    """``(config, spec, options)``: the run's config resolved from the data, checked against
+    the data and the workdir and written to its config.json; its ``RunSpec``; the inference
+    options its evaluations use."""
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
@@ -287,8 +287,13 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     # Written once every check has passed: a refused run leaves no folder behind (the lock
     # removes the workdir it made when nothing was written into it).
     run_config.save_config(workdir, record)
-    init_key, train_key = jax.random.split(jax.random.key(config.seed))
-    manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
+    return config, spec, options
+
+
+def _initial_state(config, spec: RunSpec, workdir: str, manager, init_key) -> TrainState:
+    """The state the run starts from: its latest checkpoint, else a fresh one (with the
+    parameters of ``train.init_from`` where that names a model)."""
+    init_from = config.train.get("init_from") or ""
     state = checkpoint.restore_or_init(
         manager, create_train_state(init_key, spec.model, spec.optimizer()))
     step, total = int(state.step), spec.total_steps
@@ -300,16 +305,57 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     elif init_from:
         state = _start_from(state, init_from)
-    run_records.trim_metrics(workdir, step)
+    return state
+
+
+def _compiled_chunk(config, spec: RunSpec, train_data: KeypointData, state: TrainState):
+    """``(chunk, state, data)``: the run's jitted ``make_train_chunk``, the state and the
+    device-resident training data it takes (replicated over the devices when data-parallel)."""
     by_frame = spec.loss.w_multiview > 0
-    data = device_data.device_train_data(train_data, config.data.class_balanced, with_3d=with_3d,
-                                         by_frame=by_frame)
+    data = device_data.device_train_data(train_data, config.data.class_balanced,
+                                         with_3d=spec.loss.w_supervised > 0, by_frame=by_frame)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
     chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh,
                                      spec.loss.multiview_views if by_frame else 0),
                     static_argnames="n_steps", donate_argnums=0)
+    return chunk, state, data
+
+
+def _earlier_evaluations(workdir: str, step: int, total: int) -> tuple[list[dict], float]:
+    """The evaluations a resumed run made before its checkpoint at ``step``, and its
+    training clock there (none and 0 for a new run)."""
+    before = run_records.read_results(workdir)
+    history = [h for h in before.get("history", []) if h["step"] <= step]
+    last = before.get("final")
+    if last and last.get("step") == step < total and all(h["step"] != step for h in history):
+        history.append(last)  # a finished run extended: its final evaluation is on the curve
+    return history, run_records.clock_at(before, step) or 0.0
+
+
+def _record_evaluation(workdir: str, history: list[dict], writer, hooks: Hooks,
+                       state: TrainState) -> None:
+    """Logs and writes the evaluation that ends ``history``, then shows it to the hooks."""
+    step = history[-1]["step"]
+    logging.info("test at step %d: %s", step, _scores(history[-1]))
+    run_records.write_results(workdir, {"history": history})
+    writer.scalars(step, history[-1], prefix="test/")
+    if hooks.after_evaluation is not None:
+        hooks.after_evaluation(history[-1], state)
+
+
+def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
+    """``train_and_evaluate``'s run, the workdir locked."""
+    train_data, test_data = load_splits(config.data)
+    validation.check_split_keypoints(train_data, test_data, config.model.n_keypoints)
+    config, spec, options = _resolve_run(config, workdir, train_data, test_data)
+    init_key, train_key = jax.random.split(jax.random.key(config.seed))
+    manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
+    state = _initial_state(config, spec, workdir, manager, init_key)
+    step, total = int(state.step), spec.total_steps
+    run_records.trim_metrics(workdir, step)
+    chunk, state, data = _compiled_chunk(config, spec, train_data, state)
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
     def evaluate(state, step):
@@ -317,12 +363,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
-    before = run_records.read_results(workdir)
-    history = [h for h in before.get("history", []) if h["step"] <= step]
-    last = before.get("final")
-    if last and last.get("step") == step < total and all(h["step"] != step for h in history):
-        history.append(last)  # a finished run extended: its final evaluation is on the curve
-    train_s = run_records.clock_at(before, step) or 0.0
+    history, train_s = _earlier_evaluations(workdir, step, total)
     pbar = progress.progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                                  disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
@@ -358,11 +399,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                         checkpoint.save(manager, step, state, force=step == total or stopping)
                     if evaluating:
                         history.append(evaluate(state, step))
-                        logging.info("test at step %d: %s", step, _scores(history[-1]))
-                        run_records.write_results(workdir, {"history": history})
-                        writer.scalars(step, history[-1], prefix="test/")
-                        if hooks.after_evaluation is not None:
-                            hooks.after_evaluation(history[-1], state)
+                        _record_evaluation(workdir, history, writer, hooks, state)
                     tic = time.perf_counter()
                 if stopping:  # said after the bar is closed, not drawn around it
                     break
