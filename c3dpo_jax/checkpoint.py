@@ -1,16 +1,9 @@
-"""Checkpoints: the only module that imports orbax.
+"""Checkpoints and their integrity: the only module that imports orbax.
 
-Layout of a workdir::
-
-    workdir/config.json          the resolved config (model settings for ``load``), the
-                                 training split's fingerprint, the data files' absolute
-                                 paths (``data_files``) and the software that trained it
-                                 (``software_record``)
-    workdir/checkpoints/<step>/  orbax StandardSave of the TrainState pytree (or of the
-                                 variables alone: ``save_variables``), and
-                                 c3dpo_sha256.json: the sha256 of each of its files
-    workdir/metrics.jsonl        one JSON line per logged chunk of steps
-    workdir/eval_results.json    evaluation history, final metrics and baselines
+``workdir/checkpoints/<step>/`` holds an orbax StandardSave of the TrainState pytree (or of
+the variables alone: ``save_variables``) and ``c3dpo_sha256.json``, the sha256 of each of
+its files. The rest of the workdir (``config.json``, ``metrics.jsonl``,
+``eval_results.json``, the TensorBoard events) is the run's records, ``run_records``.
 
 A checkpoint proves itself before it is used: orbax does not check that its data files
 hold what was written (flipped bytes can decode into wrong numbers), so once a save has
@@ -23,12 +16,9 @@ checked for readability and finite values only.
 
 import contextlib
 import hashlib
-import importlib.metadata
 import json
 import logging as py_logging
 import os
-import platform
-import subprocess
 from typing import Any
 
 import jax
@@ -37,12 +27,7 @@ import orbax.checkpoint as ocp
 from absl import logging
 from etils import epath
 
-from c3dpo_jax.model import MOVED_TO_INFERENCE
-
-CONFIG_FILE = "config.json"
 CHECKPOINT_DIR = "checkpoints"
-
-
 CHECKSUM_FILE = "c3dpo_sha256.json"
 
 
@@ -216,7 +201,7 @@ def _restore(manager: ocp.CheckpointManager, step: int, template, subtree: bool 
     if problem is not None:
         workdir = os.path.dirname(os.path.abspath(str(manager.directory)))
         raise ValueError(f"checkpoint {manager.directory}/{step} holds a network of other shapes "
-                         f"than {os.path.join(workdir, CONFIG_FILE)}'s model section describes "
+                         f"than {os.path.join(workdir, 'config.json')}'s model section describes "
                          f"({problem}): that config.json is not the one it was saved with")
     # A reader of its own for each step: orbax's manager fixes how it reads its steps
     # (one item or several) from the first one it reads, so a damaged step folder read
@@ -283,136 +268,10 @@ def save(manager: ocp.CheckpointManager, step: int, state, force: bool = False) 
     return manager.save(step, args=ocp.args.StandardSave(state), force=force)
 
 
-def _git(*args: str) -> str | None:
-    """Output of ``git ARGS`` run in this package's directory, or None (no git, no repo)."""
-    try:
-        out = subprocess.run(["git", "-C", os.path.dirname(os.path.abspath(__file__)), *args],
-                             capture_output=True, text=True, timeout=10, check=False)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
-
-
-def software_record() -> dict[str, Any]:
-    """The software a run is made with: the package's version, the git commit of its source
-    when it runs from a git checkout that tracks it (``git_dirty``: the package's tracked
-    files differ from that commit), and the versions of Python and the numerical stack."""
-    record: dict[str, Any] = {}
-    for name in ("c3dpo_jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint"):
-        try:
-            record[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            record[name] = None
-    record["python"] = platform.python_version()
-    tracked = _git("ls-files", "--error-unmatch", os.path.basename(__file__)) is not None
-    commit = _git("rev-parse", "HEAD") if tracked else None
-    record["git_commit"] = commit
-    record["git_dirty"] = None if commit is None else bool(
-        _git("status", "--porcelain", "--untracked-files=no", "--", "."))
-    return record
-
-
-def software_history(workdir: str) -> list[dict[str, Any]]:
-    """The software records of a run: those of the workdir's checkpoints' run, plus this
-    process's when it differs from the last (a resumption by other software is warned
-    about in one line). A workdir without checkpoints starts a new history."""
-    saved = load_config(workdir) if has_checkpoint(workdir) else None
-    history = list((saved or {}).get("software", []))
-    current = software_record()
-    if history and history[-1] == current:
-        return history
-    if history:
-        changed = [f"{k} {history[-1].get(k)} -> {v}" for k, v in current.items()
-                   if history[-1].get(k) != v]
-        logging.warning("resuming a run begun with other software: %s", "; ".join(changed))
-    return [*history, current]
-
-
-def save_config(workdir: str, config: dict[str, Any]) -> None:
-    """Writes ``config.json`` whole or not at all (a kill mid-write leaves the old one)."""
-    write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
-
-
-# What makes a checkpoint another run's: the network (model; a saved model section's
-# inference options, ``model.MOVED_TO_INFERENCE``, are not the network's), the optimiser and
-# its state (optim), the objective (loss), the seed, the batches and the epoch length that
-# the schedule counts in, and what the run learns from. The evaluation protocol, the test
-# file, the inference options (``inference``) and the step counts may change between a run
-# and its resumption.
-_RUN_DATA_FIELDS = ("train_path", "source", "min_visible", "drop_invalid", "class_balanced")
-_RUN_TRAIN_FIELDS = ("batch_size", "samples_per_epoch")
-
-
-def _run_identity(config: dict[str, Any]) -> dict[str, Any]:
-    data, train = config.get("data", {}), config.get("train", {})
-    ident = {"model": {k: v for k, v in config.get("model", {}).items()
-                       if k not in MOVED_TO_INFERENCE},
-             "optim": config.get("optim", {}),
-             "train": {k: train[k] for k in _RUN_TRAIN_FIELDS if k in train},
-             "data": {k: data[k] for k in _RUN_DATA_FIELDS if k in data}}
-    for key in ("loss", "seed"):
-        if key in config:
-            ident[key] = config[key]
-    if "train_data_sha256" in config:  # what was read, so a file edited in place counts
-        ident["train_data_sha256"] = config["train_data_sha256"][:12]
-        ident["data"].pop("train_path", None)  # and the same file under another path does not
-    if data.get("train_path"):  # the files win over the source (data.load_splits)
-        ident["data"].pop("source", None)
-    elif data.get("source") == "release":
-        ident["data"]["name"] = data.get("name")
-    elif data.get("source") in data:  # a generator's parameters
-        ident["data"][data["source"]] = data[data["source"]]
-    return json.loads(json.dumps(ident, default=list))  # tuples as JSON lists
-
-
-def differences(saved: Any, new: Any, path: str = "") -> list[str]:
-    """``section.field: A in the checkpoint's run, B now`` for every field both have."""
-    if isinstance(saved, dict) and isinstance(new, dict):
-        return [d for k in sorted(set(saved) & set(new))
-                for d in differences(saved[k], new[k], f"{path}.{k}" if path else k)]
-    return [] if saved == new else [f"{path}: {saved!r} in the checkpoint's run, {new!r} now"]
-
-
 def has_checkpoint(workdir: str) -> bool:
     """Whether ``workdir/checkpoints`` holds a step directory (intact or not)."""
     directory = os.path.join(workdir, CHECKPOINT_DIR)
     return os.path.isdir(directory) and any(n.isdigit() for n in os.listdir(directory))
-
-
-def check_workdir(workdir: str, config: dict[str, Any]) -> None:
-    """Refuses, in one line and before anything is written, to resume checkpoints made
-    with another run identity (``_run_identity``) than ``config`` asks for. A workdir
-    without checkpoints (e.g. left by a run that failed before its first one) may be
-    reused by any run; checkpoints without a ``config.json`` are refused (their run is
-    unknown); fields that only one of the two configs has are not compared."""
-    if not has_checkpoint(workdir):
-        return
-    saved = load_config(workdir)
-    if saved is None:
-        raise ValueError(f"{workdir} holds checkpoints but no {CONFIG_FILE}, so which run they "
-                         f"belong to is unknown; put its {CONFIG_FILE} back, use a new "
-                         f"--workdir, or delete {os.path.join(workdir, CHECKPOINT_DIR)}")
-    diffs = differences(_run_identity(saved), _run_identity(config))
-    if diffs:
-        more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
-        raise ValueError(
-            f"{workdir} holds checkpoints of another run ({'; '.join(diffs[:3])}{more}); "
-            f"use a new --workdir, or delete {os.path.join(workdir, CHECKPOINT_DIR)} to start "
-            "again there")
-
-
-def load_config(workdir: str) -> dict[str, Any] | None:
-    """The run's saved ``config.json``, None when there is none; a damaged one (e.g. cut
-    short by a full disk) is a one-line ValueError naming the file."""
-    path = os.path.join(workdir, CONFIG_FILE)
-    if not os.path.exists(path):
-        return None
-    with open(path) as f:
-        try:
-            return json.load(f)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path} is not valid JSON ({err}): it holds the run's settings, "
-                             "which loading and resuming the run need") from None
 
 
 @_orbax_quiet()

@@ -21,11 +21,12 @@ import os
 import re
 import signal
 import sys
-import threading
 from collections.abc import Callable
 
 from absl import app, flags, logging
 from tqdm import tqdm
+
+from c3dpo_jax import stops
 
 # What input the user got wrong (json.JSONDecodeError and UnicodeDecodeError are ValueErrors;
 # OSError covers missing, unreadable and unwritable files; FloatingPointError is a run whose
@@ -267,9 +268,10 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder | None = No
         on_interrupt: str = "stopped", positional: bool = False) -> None:
     """``app.run(main)`` as the package's commands (and the repository's experiments) run
     (module docstring): an error in the input, including ``app.UsageError``, is one line; a
-    Ctrl-C or SIGTERM that ``main`` does not handle itself ends with one line,
-    ``interrupted: ON_INTERRUPT``, and exit status 130 / 143 (``--verbose`` or ``-v 1``:
-    Python's own handling, a KeyboardInterrupt's traceback).
+    Ctrl-C or SIGTERM ends with one line and exit status 130 / 143: the training loop's
+    ``stops.Interrupted`` (checkpointed), else ``interrupted: ON_INTERRUPT``
+    (``stops.end_at_once``; ``--verbose`` or ``-v 1``: Python's own handling, a
+    KeyboardInterrupt's traceback).
     Arguments that are not flags are refused unless ``positional`` (``main`` reads them)."""
     # --helpshort lists the flags of the file in argv[0]: a console script defines none; and
     # --help starts with __main__'s docstring, which a console script's wrapper lacks.
@@ -281,12 +283,15 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder | None = No
 
     def guarded(argv):
         if not is_verbose(verbose):
-            _stop_on_signals(on_interrupt)
+            stops.end_at_once(on_interrupt)
         try:
             if len(argv) > 1 and not positional:  # "--config.x False": absl leaves "False"
                 raise ValueError(f"unexpected argument(s) {' '.join(argv[1:])!r}: give every "
                                  "value with '=' (e.g. --config.model.canonicalization=False)")
             main(argv)
+        except stops.Interrupted as err:  # the loop's stop: checkpointed, resumable
+            print(str(err), file=sys.stderr)
+            sys.exit(err.exit_code)
         except (app.UsageError, *USER_ERRORS) as err:
             if is_verbose(verbose):
                 raise
@@ -298,27 +303,6 @@ def run(main: Callable[[list[str]], None], verbose: flags.FlagHolder | None = No
             sys.exit(128 + signal.SIGINT)
 
     app.run(guarded, flags_parser=_parse_flags)
-
-
-def _stop_on_signals(on_interrupt: str) -> None:
-    """SIGINT and SIGTERM (outside the training loop, whose own handlers checkpoint first)
-    end the process at once with one line and the shell's status for the signal. A
-    KeyboardInterrupt would not always get there: raised inside a callback (JAX's garbage
-    collection hook), Python prints it as "Exception ignored" and the command goes on."""
-    if threading.current_thread() is not threading.main_thread():
-        return
-
-    def stop(signum, frame):
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except Exception:  # noqa: BLE001 (a stream mid-write: its line is lost)
-                pass
-        os.write(2, f"interrupted: {on_interrupt}\n".encode())
-        os._exit(128 + signum)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, stop)
 
 
 class _LogFilter(py_logging.Filter):

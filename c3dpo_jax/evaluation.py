@@ -151,9 +151,9 @@ def mirrored_fraction(shape_canonical: np.ndarray, max_samples: int = 5000) -> f
 
     A view and its depth mirror image fit the same 2D points; a model that gives every view
     one handedness scores 0, one that tosses a coin per view about 0.5 (shapes with a mirror
-    symmetry score near 0.5 whatever the model does). On human bodies a coin toss comes with
-    a degenerate factorisation whose 3D error rises as training goes on
-    (experiments/dev_suite). ``shape_canonical (M, N, 3)``; the first ``max_samples`` count.
+    symmetry score near 0.5 whatever the model does). On human bodies a coin toss signals a
+    degenerate factorisation (evidence: experiments/dev_suite/diagnostics.md).
+    ``shape_canonical (M, N, 3)``; the first ``max_samples`` count.
     """
     x = np.asarray(shape_canonical[:max_samples], np.float64)
     x = x - x.mean(1, keepdims=True)

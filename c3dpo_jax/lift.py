@@ -31,8 +31,8 @@ from c3dpo_jax.types import Kp2, Vis
 
 TURN_SPANS = ("augmentation", "circle", "circle_and_range")
 # "circle": the copies kept are those whose mean 2D reprojection distance is at most this
-# times the lowest of the view's copies (experiments/dev_suite, "Turned copies round the
-# circle, chosen by their 2D fit").
+# times the lowest of the view's copies (evidence: experiments/dev_suite/inference.md,
+# "Turned copies round the circle, chosen by their 2D fit").
 TURN_KEEP_RATIO = 1.1
 # "circle_and_range": a copy counts as within the augmentation's range up to this many
 # radians beyond it (the circle's grid of 32 puts a copy at 2 pi / 16 = 0.39270 rad, the
@@ -57,9 +57,9 @@ class InferenceConfig:
         shape coefficients for each view (and each turned copy), starting from Phi's, on
         the view's mean squared 2D reprojection distance plus ``refine_prior`` times the
         mean squared distance of the canonical shape's points to Phi's (0: Phi's output,
-        as the release; orthographic models only; ``refine_camera_and_shape``;
-        experiments/dev_suite, "Refining the regressed camera and coefficients at test
-        time").
+        as the release; orthographic models only; ``refine_camera_and_shape``; evidence:
+        experiments/dev_suite/inference.md, "Refining the regressed camera and
+        coefficients at test time").
       refine_prior: the weight of that prior (>= 0).
       turns: copies of each view turned in-plane about its centre whose median depth is
         kept (an orthographic depth does not change under an in-plane turn; 1: one pass,

@@ -168,14 +168,14 @@ class LossConfig:
     ``w_supervised`` (0: C3DPO, which never sees 3D) weights the mean distance of the
     camera-frame shape's points to the training views' 3D ground truth (both centred): the
     same network trained with the truth, the reference of what one view's points allow
-    (experiments/dev_suite). Its training split needs 3D points.
+    (evidence: experiments/dev_suite/results.md). Its training split needs 3D points.
 
     ``w_multiview`` (0: C3DPO, which lifts each view alone) weights the agreement of the
     canonical shapes of views that show one pose at one instant (cameras filming together:
     the training split's ``frame`` ids): each batch is made of groups of
     ``multiview_views`` views of one frame, and the term is the pseudo-Huber penalty of each
     view's squared point distances from its group's mean canonical shape. Not in the paper
-    (experiments/dev_suite, "Multi-view training data")."""
+    (evidence: experiments/dev_suite/data_variants.md, "Multi-view training data")."""
 
     w_reprojection: float = 1.0
     w_canonicalization: float = 1.0

@@ -18,7 +18,7 @@ import sys
 from absl import flags, logging
 from ml_collections import config_flags
 
-from c3dpo_jax import cli, evaluation, run_records, train, validation
+from c3dpo_jax import cli, evaluate_workdir, evaluation, run_records, train, validation
 
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "Config file FILE[:ARGS], e.g. configs/synthetic.py:smoke (configs/NAME.py: "
@@ -109,15 +109,11 @@ def main(argv):
     if verbose:
         logging.info("config:\n%s", config)
     if _MODE.value == "train":
-        try:
-            results = train.train_and_evaluate(config, _WORKDIR.value)
-        except train.Interrupted as err:  # Ctrl-C or SIGTERM: checkpointed, resumable
-            print(str(err), file=sys.stderr)
-            sys.exit(err.exit_code)
+        results = train.train_and_evaluate(config, _WORKDIR.value)  # cli.run: Ctrl-C, SIGTERM
         if _FIGURES.value:
             _write_figures(config, _WORKDIR.value)
     else:
-        results = train.evaluate_checkpoint(config, _WORKDIR.value, save=False)
+        results = evaluate_workdir.evaluate_checkpoint(config, _WORKDIR.value, save=False)
     rows = {_method(config): results["final"], **results.get("baselines", {})}
     print(f"\nTest split ({results['final']['n_samples']} samples, protocol "
           f"'{config.data.protocol}'), step {results['final']['step']}:")

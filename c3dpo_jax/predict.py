@@ -159,14 +159,14 @@ def picture_style(workdir: str, inputs: dict, skeleton=None, y_up: bool | None =
                   ) -> tuple[list[tuple[int, int]], bool, str]:
     """(skeleton pairs, y_up, unit) for pictures of ``inputs``: the arguments, else the
     input file's settings, else the training data's (``visualise.run_style``)."""
-    from c3dpo_jax import checkpoint, skeletons, visualise
+    from c3dpo_jax import run_config, skeletons, visualise
 
     given = {"skeleton": skeleton, "y_up": y_up}
     style = dict(inputs.get("style", {}), **{k: v for k, v in given.items() if v is not None})
     if not visualise.STYLE_DEFAULTS.keys() <= style.keys():
-        if not os.path.exists(os.path.join(workdir, checkpoint.CONFIG_FILE)):  # a step dir
+        if not os.path.exists(os.path.join(workdir, run_config.CONFIG_FILE)):  # a step dir
             workdir = os.path.dirname(os.path.dirname(os.path.abspath(workdir)))
-        style = {**visualise.run_style(checkpoint.load_config(workdir) or {}), **style}
+        style = {**visualise.run_style(run_config.load_config(workdir) or {}), **style}
     return (skeletons.skeleton(style.get("skeleton"), inputs["kp"].shape[1]),
             bool(style.get("y_up", False)), style.get("unit") or "")
 

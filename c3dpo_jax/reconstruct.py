@@ -25,7 +25,7 @@ import numpy as np
 from absl import logging
 from jax.typing import ArrayLike
 
-from c3dpo_jax import checkpoint, inference, lift, model
+from c3dpo_jax import checkpoint, inference, lift, model, run_config
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.model import ModelConfig
 
@@ -70,14 +70,14 @@ class Reconstruction(NamedTuple):
 def split_path(path: str) -> tuple[str, int | None]:
     """``workdir`` or ``workdir/checkpoints/<step>`` -> (workdir, step or None)."""
     path = os.path.abspath(os.path.expanduser(path))
-    if os.path.exists(os.path.join(path, checkpoint.CONFIG_FILE)):
+    if os.path.exists(os.path.join(path, run_config.CONFIG_FILE)):
         return path, None
     parent, step = os.path.split(path)
     workdir, ckpt_dir = os.path.split(parent)
     if ckpt_dir == checkpoint.CHECKPOINT_DIR and step.isdigit():
         return workdir, int(step)
     raise FileNotFoundError(
-        f"{path!r} is neither a workdir (with {checkpoint.CONFIG_FILE}) nor a "
+        f"{path!r} is neither a workdir (with {run_config.CONFIG_FILE}) nor a "
         f"checkpoint step directory (WORKDIR/{checkpoint.CHECKPOINT_DIR}/<step>)"
     )
 
@@ -85,9 +85,9 @@ def split_path(path: str) -> tuple[str, int | None]:
 def load(path: str) -> C3DPOParams:
     """Loads a trained model from a workdir (latest step) or one checkpoint step dir."""
     workdir, step = split_path(path)
-    config = checkpoint.load_config(workdir)
+    config = run_config.load_config(workdir)
     if config is None or "model" not in config:
-        raise ValueError(f"{workdir}/{checkpoint.CONFIG_FILE} has no 'model' section")
+        raise ValueError(f"{workdir}/{run_config.CONFIG_FILE} has no 'model' section")
     model_cfg = ModelConfig.from_dict(config["model"])
     options = lift.inference_config(
         model_cfg, InferenceConfig.from_dict(lift.saved_options(config)))
@@ -112,9 +112,9 @@ def save_workdir(params: C3DPOParams, workdir: str, config_dict: dict | None = N
     config = json.loads(json.dumps(dict(config_dict or {}), default=list))
     config["model"] = params.config.to_dict()
     config["inference"] = params.inference.to_dict()
-    config["software"] = [checkpoint.software_record()]  # what wrote it (e.g. a conversion)
+    config["software"] = [run_config.software_record()]  # what wrote it (e.g. a conversion)
     os.makedirs(workdir, exist_ok=True)
-    checkpoint.save_config(workdir, config)
+    run_config.save_config(workdir, config)
     checkpoint.save_variables(workdir, params.variables)
     return workdir
 
@@ -308,10 +308,7 @@ def _reconstruct_batch(params: C3DPOParams, kp, vis, class_mask, K, body):
 # The median distance of the views' canonical shapes to a body of ``HANDEDNESS_REFERENCES``
 # (each shape and the body centred and scaled to unit norm, after the best rotation or
 # reflection: 0 for copies of the body, at most sqrt(2)) above which the points are
-# probably in another joint order. Views of real people in the body's order, "h36m": medians
-# 0.20-0.40 (the default recipe's models of CMU subject 131 and the built-in humans, seeds
-# 0-2); the same views with their points shuffled: 1.25-1.34. "coco": CMU 131's people in
-# COCO's order 0.36, the h36m body for them 0.96.
+# probably in another joint order (evidence: experiments/dev_suite/handedness.md).
 BODY_DISTANCE_WARNING = 0.8
 
 

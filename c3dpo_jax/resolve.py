@@ -6,7 +6,8 @@ them set: the input scale (``model.keypoint_rescale = 0``), the scaling of each 
 inference (``inference.handedness_reference``: "auto" or a body file). A run's config.json
 holds the values, so that inference, a resumed run and ``--mode=eval`` use the same ones:
 ``saved`` (a workdir's config.json) wins where it has them. ``train.train_and_evaluate``
-and ``train.evaluate_checkpoint`` call it; so do experiments that build a model by hand.
+and ``evaluate_workdir.evaluate_checkpoint`` call it; so do experiments that build a model
+by hand.
 
 Glossary: M views of the training split, N keypoints.
 """
@@ -17,10 +18,10 @@ from absl import logging
 from c3dpo_jax import baselines, lift
 from c3dpo_jax.data import KeypointData, alike_view_size_ratio, auto_keypoint_rescale, bodies
 
-# experiments/dev_suite, "The handedness of a human body".
+# Evidence: experiments/dev_suite/handedness.md, "The handedness of a human body".
 BODY_FIT_2D = 0.6  # resolve_handedness: a body's fit below it names the views' joint order
 BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
-# experiments/dev_suite, "People at different distances".
+# Evidence: experiments/dev_suite/data_variants.md, "People at different distances".
 ALIKE_SIZE_RATIO = 1.18  # resolve_keypoint_scaling: views' size ratio above it, per view
 
 

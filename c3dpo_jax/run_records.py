@@ -1,28 +1,60 @@
-"""A run's records in its workdir: ``metrics.jsonl`` and TensorBoard events (one record per
-logged chunk of steps, ``MetricsWriter``; ``trim_metrics`` drops the records a resumed run
-replays) and ``eval_results.json`` (the evaluation history, the final scores and the
-baselines; written whole or not at all)."""
+"""What a run writes as it trains and is scored, beside its checkpoints (``checkpoint``)
+and its settings (``run_config``)::
+
+    workdir/metrics.jsonl      one JSON line per logged chunk of steps (``MetricsWriter``;
+                               ``trim_metrics`` drops the records a resumed run replays)
+    workdir/events.out.tfevents.*  the same curves and the test scores, for TensorBoard
+    workdir/eval_results.json  the evaluation history, the final scores and the baselines
+                               (written whole or not at all)
+"""
 
 import json
+import math
 import os
 import time
 
 import jax
 import numpy as np
 from absl import logging
+from tensorboardX import SummaryWriter
 
-from c3dpo_jax import checkpoint, tensorboard, workdir_lock
+from c3dpo_jax import checkpoint, workdir_lock
+
+# Bookkeeping fields of metrics.jsonl and eval_results.json records, not curves.
+_NOT_CURVES = frozenset({"step", "epoch", "n_samples"})
+
+
+def _curves(values: dict, prefix: str = "") -> dict[str, float]:
+    """Finite numbers of ``values`` (nested dicts as ``a/b``), bookkeeping fields left out."""
+    out = {}
+    for key, value in values.items():
+        if key in _NOT_CURVES:
+            continue
+        if isinstance(value, dict):
+            out.update(_curves(value, f"{prefix}{key}/"))
+        elif isinstance(value, int | float) and math.isfinite(value):
+            out[f"{prefix}{key}"] = float(value)
+    return out
 
 
 class MetricsWriter:
     """Fetches chunk metrics (one chunk late, so the host never waits on the device),
     checks them, logs them and appends them to ``metrics.jsonl`` and TensorBoard events.
     ``resumed_from``: the step of the checkpoint the run resumed from (0: none), which a
-    loss that is not finite in the first chunk after it names as the suspect."""
+    loss that is not finite in the first chunk after it names as the suspect.
+
+    The events go through tensorboardX's ``SummaryWriter`` (no TensorFlow), into a file of
+    their own for each run in the workdir, which starts by purging the steps after
+    ``resumed_from``: TensorBoard then drops what an earlier run wrote past the checkpoint
+    (the resumed run replays those steps), as ``trim_metrics`` does in ``metrics.jsonl``.
+    ``close`` (or the end of a ``with`` block) writes the events still queued."""
 
     def __init__(self, workdir: str, pbar, resumed_from: int = 0):
         self.path = os.path.join(workdir, "metrics.jsonl")
-        self.events = tensorboard.EventWriter(workdir)
+        # A suffix in nanoseconds: the file's name holds the time in whole seconds, and a
+        # run resumed within the same second would otherwise overwrite the earlier file.
+        self.events = SummaryWriter(workdir, purge_step=resumed_from + 1, flush_secs=10,
+                                    filename_suffix=f".{time.time_ns()}")
         self.pbar, self.pending, self.last_time = pbar, None, time.perf_counter()
         self.checkpoints, self.resumed_from = (
             os.path.join(workdir, checkpoint.CHECKPOINT_DIR), resumed_from)
@@ -58,7 +90,7 @@ class MetricsWriter:
         self.last_time = now
         with open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
-        self.events.scalars(record["step"], record)
+        self.scalars(record["step"], record)
         self.pbar.update(n)
         self.pbar.set_postfix(
             loss=f"{record['loss']:.4f}",
@@ -67,6 +99,20 @@ class MetricsWriter:
             refresh=False,
         )
         logging.log_every_n_seconds(logging.INFO, "step %d: %s", 30, record["step"], record)
+
+    def scalars(self, step: int, values: dict, prefix: str = "") -> None:
+        """TensorBoard curves ``prefix + key`` at ``step`` of the numbers in ``values``."""
+        for tag, value in _curves(values, prefix).items():
+            self.events.add_scalar(tag, value, step)
+
+    def close(self) -> None:
+        self.events.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 def write_results(workdir: str, results: dict) -> None:

@@ -26,18 +26,12 @@ Glossary: B batch, N keypoints, M dataset samples, T steps per compiled call.
 """
 
 import dataclasses
-import importlib.util
-import json
 import os
-import signal
-import sys
-import threading
 import time
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -48,7 +42,10 @@ from c3dpo_jax import (
     evaluation,
     lift,
     model,
+    progress,
+    run_config,
     run_records,
+    stops,
     validation,
     workdir_lock,
 )
@@ -118,32 +115,6 @@ def make_train_chunk(train_step, batch_size: int, mesh: Mesh | None = None,
     return chunk
 
 
-def _check_n_keypoints(train_data: KeypointData, test_data: KeypointData,
-                       n_keypoints: int) -> None:
-    """The splits' keypoint counts, against each other and then the model's: first of all,
-    since what is worked out from the data (``resolve.resolve_from_data``) assumes them
-    equal."""
-    if train_data.n_keypoints != test_data.n_keypoints:
-        raise ValueError(
-            f"the train split has {train_data.n_keypoints} keypoints and the test split "
-            f"{test_data.n_keypoints}: the two files disagree (config.data.train_path and "
-            "test_path must hold the same points)")
-    if train_data.n_keypoints != n_keypoints:
-        raise ValueError(
-            f"train split has {train_data.n_keypoints} keypoints but config.model.n_keypoints "
-            f"is {n_keypoints}; set --config.model.n_keypoints={train_data.n_keypoints}")
-
-
-def _check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
-                with_3d: bool = False) -> None:
-    if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
-        what = "none" if data.kp3d is None else "some that is not finite"
-        raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
-                         f"{split} split has {what} (kp_loc_3d)")
-    if model_cfg.projection_type == "perspective" and data.intrinsics is None:
-        raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")
-
-
 def _scores(record: dict) -> str:
     """An evaluation's scores in one short line (all of them: eval_results.json)."""
     return ", ".join(f"{k} {record[k]:.4g}" for k in evaluation.TABLE_KEYS if k in record)
@@ -153,39 +124,6 @@ def _next_stop(step: int, total: int, intervals) -> int:
     """The first step after ``step`` that is a multiple of an interval, or ``total``."""
     stops = [total] + [(step // i + 1) * i for i in intervals if i > 0]
     return min(stops)
-
-
-class _BarLines:
-    """The progress bar's stream where stderr is a file or a pipe (a log, ``| tee``, a batch
-    job): each redraw becomes one line, where a terminal's carriage returns would pile every
-    update into one line thousands of characters long."""
-
-    def __init__(self, stream):
-        self.stream, self.last = stream, ""
-
-    def write(self, text: str) -> None:
-        line = text.replace("\r", "").strip("\n")
-        if line.strip() and line != self.last:
-            self.stream.write(line + "\n")
-            self.last = line
-
-    def flush(self) -> None:
-        self.stream.flush()
-
-
-def _progress_bar(**kwargs):
-    """tqdm's widget bar in a notebook that has ipywidgets, else its text bar (importing
-    tqdm.auto would warn "IProgress not found" in every notebook without ipywidgets); where
-    stderr is not a terminal (nor a notebook), a line every 30 s (``_BarLines``)."""
-    notebook = "ipykernel" in sys.modules
-    if notebook and importlib.util.find_spec("ipywidgets") is not None:
-        from tqdm.auto import tqdm
-    else:
-        from tqdm import tqdm
-    if not notebook and not sys.stderr.isatty():
-        kwargs.update(file=_BarLines(sys.stderr), mininterval=30.0, ncols=100,
-                      dynamic_ncols=False)
-    return tqdm(**kwargs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -283,52 +221,6 @@ def _data_parallel_mesh(config) -> Mesh | None:
     return device_data.make_mesh(n)
 
 
-class Interrupted(Exception):
-    """Training stopped by SIGINT or SIGTERM after checkpointing the step it had reached;
-    ``exit_code`` is the shell's code for that signal (130, 143)."""
-
-    def __init__(self, message: str, exit_code: int):
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
-class _StopSignals:
-    """While active, SIGINT (Ctrl-C) and SIGTERM only record that a stop was asked for, so
-    the loop can finish its chunk, checkpoint and stop. A second signal within
-    ``REPEAT_S`` of the first is the same request delivered twice (``timeout`` and batch
-    schedulers signal the process and then its process group) and is ignored; a later one
-    acts as usual (Ctrl-C twice: a traceback now). Only in the main thread (elsewhere
-    signals cannot be caught)."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-    REPEAT_S = 1.0
-
-    def __init__(self):
-        self.received, self.received_at, self.previous = None, 0.0, {}
-
-    def _handle(self, signum, frame):
-        now = time.monotonic()
-        if self.received is None:
-            self.received, self.received_at = signum, now
-            return
-        if now - self.received_at < self.REPEAT_S:
-            return
-        for sig, handler in self.previous.items():  # the usual behaviour, for this one too
-            signal.signal(sig, handler)
-        if signum == signal.SIGINT:  # unwinds through the loop's clean-up (saves finished)
-            raise KeyboardInterrupt
-        signal.raise_signal(signum)
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
-        return self
-
-    def __exit__(self, *exc):
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-
-
 def _start_from(state: TrainState, path: str) -> TrainState:
     """``state`` with the parameters and BatchNorm statistics of the model at ``path`` (a
     workdir or one of its checkpoint steps; ``train.init_from``), the optimiser fresh."""
@@ -340,12 +232,6 @@ def _start_from(state: TrainState, path: str) -> TrainState:
                              "architecture (its parameter shapes differ from this config's)")
     logging.info("parameters from %s", path)
     return state.replace(params=source["params"], batch_stats=source["batch_stats"])
-
-
-def _check_workdir_is_a_folder(workdir: str) -> None:
-    if os.path.exists(workdir) and not os.path.isdir(workdir):
-        raise ValueError(f"the workdir {workdir} is a file; --workdir names a folder (made if "
-                         "missing)")
 
 
 @model.single_precision
@@ -360,20 +246,20 @@ def train_and_evaluate(config, workdir: str, hooks: Hooks | None = None) -> dict
     lock throughout (``workdir_lock.hold``): a second run there is refused in one line.
     """
     validation.check_config(config)
-    _check_workdir_is_a_folder(workdir)
+    validation.check_workdir_is_a_folder(workdir)
     with workdir_lock.hold(workdir):
         return _train_and_evaluate(config, workdir, hooks or Hooks())
 
 
-def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
-    """``train_and_evaluate``'s run, the workdir locked."""
-    train_data, test_data = load_splits(config.data)
-    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
+def _resolve_run(config, workdir: str, train_data: KeypointData, test_data: KeypointData):
+    """``(config, spec, options)``: the run's config resolved from the data, checked against
+    the data and the workdir and written to its config.json; its ``RunSpec``; the inference
+    options its evaluations use."""
     init_from = config.train.get("init_from") or ""
     # A resumed run keeps its own input scale and handedness; one that starts from another
     # run's parameters takes that run's (only then is the other run read).
-    scale_from = (checkpoint.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
-                  checkpoint.load_config(split_path(init_from)[0]) if init_from else None)
+    scale_from = (run_config.load_config(workdir) if checkpoint.has_checkpoint(workdir) else
+                  run_config.load_config(split_path(init_from)[0]) if init_from else None)
     config = resolve_from_data(config, train_data, scale_from)
     spec = RunSpec.from_config(config)
     options = lift.inference_config(spec.model, spec.inference)
@@ -389,20 +275,25 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     record = dict(config.to_dict(), train_data_sha256=fingerprint(train_data),
                   data_files={k: os.path.abspath(config.data[k])
                               for k in ("train_path", "test_path") if config.data[k]})
-    checkpoint.check_workdir(workdir, record)
-    record["software"] = checkpoint.software_history(workdir)
+    run_config.check_workdir(workdir, record)
+    record["software"] = run_config.software_history(workdir)
     if spec.model.projection_type != "perspective" and train_data.intrinsics is not None:
         logging.warning("the training data has intrinsics (K) and the model is orthographic, "
                         "which ignores them (--config.model.projection_type=perspective uses "
                         "them)")
     with_3d = spec.loss.w_supervised > 0  # the 3D truth's term needs the training split's 3D
-    _check_data(train_data, spec.model, "train", with_3d=with_3d)
-    _check_data(test_data, spec.model, "test")
+    validation.check_data(train_data, spec.model, "train", with_3d=with_3d)
+    validation.check_data(test_data, spec.model, "test")
     # Written once every check has passed: a refused run leaves no folder behind (the lock
     # removes the workdir it made when nothing was written into it).
-    checkpoint.save_config(workdir, record)
-    init_key, train_key = jax.random.split(jax.random.key(config.seed))
-    manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
+    run_config.save_config(workdir, record)
+    return config, spec, options
+
+
+def _initial_state(config, spec: RunSpec, workdir: str, manager, init_key) -> TrainState:
+    """The state the run starts from: its latest checkpoint, else a fresh one (with the
+    parameters of ``train.init_from`` where that names a model)."""
+    init_from = config.train.get("init_from") or ""
     state = checkpoint.restore_or_init(
         manager, create_train_state(init_key, spec.model, spec.optimizer()))
     step, total = int(state.step), spec.total_steps
@@ -414,16 +305,57 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         logging.info("resumed from the checkpoint at step %d in %s", step, workdir)
     elif init_from:
         state = _start_from(state, init_from)
-    run_records.trim_metrics(workdir, step)
+    return state
+
+
+def _compiled_chunk(config, spec: RunSpec, train_data: KeypointData, state: TrainState):
+    """``(chunk, state, data)``: the run's jitted ``make_train_chunk``, the state and the
+    device-resident training data it takes (replicated over the devices when data-parallel)."""
     by_frame = spec.loss.w_multiview > 0
-    data = device_data.device_train_data(train_data, config.data.class_balanced, with_3d=with_3d,
-                                         by_frame=by_frame)
+    data = device_data.device_train_data(train_data, config.data.class_balanced,
+                                         with_3d=spec.loss.w_supervised > 0, by_frame=by_frame)
     mesh = _data_parallel_mesh(config)
     if mesh is not None:
         state, data = device_data.replicate(state, mesh), device_data.replicate(data, mesh)
     chunk = jax.jit(make_train_chunk(spec.train_step(), spec.batch_size, mesh,
                                      spec.loss.multiview_views if by_frame else 0),
                     static_argnames="n_steps", donate_argnums=0)
+    return chunk, state, data
+
+
+def _earlier_evaluations(workdir: str, step: int, total: int) -> tuple[list[dict], float]:
+    """The evaluations a resumed run made before its checkpoint at ``step``, and its
+    training clock there (none and 0 for a new run)."""
+    before = run_records.read_results(workdir)
+    history = [h for h in before.get("history", []) if h["step"] <= step]
+    last = before.get("final")
+    if last and last.get("step") == step < total and all(h["step"] != step for h in history):
+        history.append(last)  # a finished run extended: its final evaluation is on the curve
+    return history, run_records.clock_at(before, step) or 0.0
+
+
+def _record_evaluation(workdir: str, history: list[dict], writer, hooks: Hooks,
+                       state: TrainState) -> None:
+    """Logs and writes the evaluation that ends ``history``, then shows it to the hooks."""
+    step = history[-1]["step"]
+    logging.info("test at step %d: %s", step, _scores(history[-1]))
+    run_records.write_results(workdir, {"history": history})
+    writer.scalars(step, history[-1], prefix="test/")
+    if hooks.after_evaluation is not None:
+        hooks.after_evaluation(history[-1], state)
+
+
+def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
+    """``train_and_evaluate``'s run, the workdir locked."""
+    train_data, test_data = load_splits(config.data)
+    validation.check_split_keypoints(train_data, test_data, config.model.n_keypoints)
+    config, spec, options = _resolve_run(config, workdir, train_data, test_data)
+    init_key, train_key = jax.random.split(jax.random.key(config.seed))
+    manager = checkpoint.make_manager(workdir, config.train.ckpt_every)
+    state = _initial_state(config, spec, workdir, manager, init_key)
+    step, total = int(state.step), spec.total_steps
+    run_records.trim_metrics(workdir, step)
+    chunk, state, data = _compiled_chunk(config, spec, train_data, state)
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
     def evaluate(state, step):
@@ -431,14 +363,9 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
-    before = run_records.read_results(workdir)
-    history = [h for h in before.get("history", []) if h["step"] <= step]
-    last = before.get("final")
-    if last and last.get("step") == step < total and all(h["step"] != step for h in history):
-        history.append(last)  # a finished run extended: its final evaluation is on the curve
-    train_s = run_records.clock_at(before, step) or 0.0
-    pbar = _progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
-                disable=not config.train.progress_bar, desc="train")
+    history, train_s = _earlier_evaluations(workdir, step, total)
+    pbar = progress.progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
+                                 disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
 
     def close() -> None:
@@ -449,7 +376,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
 
     tic = time.perf_counter()
     try:
-        with _StopSignals() as signals:
+        with stops.StopRequests() as signals:
             while step < total:
                 stop = _next_stop(step, total, (config.train.log_every, config.train.ckpt_every,
                                                 spec.eval_every))
@@ -459,9 +386,9 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                 if hooks.after_chunk is not None:
                     hooks.after_chunk(step, state)
                 clock = train_s + time.perf_counter() - tic
-                stopping = signals.received is not None or (
+                stopping = signals.requested or (
                     hooks.should_stop is not None and hooks.should_stop(step, clock))
-                evaluating = step < total and signals.received is None and (
+                evaluating = step < total and not signals.requested and (
                     (spec.eval_every and step % spec.eval_every == 0)
                     or (hooks.should_evaluate is not None and hooks.should_evaluate(step, clock)))
                 if evaluating or stopping or step % config.train.ckpt_every == 0 or step == total:
@@ -472,127 +399,31 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
                         checkpoint.save(manager, step, state, force=step == total or stopping)
                     if evaluating:
                         history.append(evaluate(state, step))
-                        logging.info("test at step %d: %s", step, _scores(history[-1]))
-                        run_records.write_results(workdir, {"history": history})
-                        writer.events.scalars(step, history[-1], prefix="test/")
-                        if hooks.after_evaluation is not None:
-                            hooks.after_evaluation(history[-1], state)
+                        _record_evaluation(workdir, history, writer, hooks, state)
                     tic = time.perf_counter()
                 if stopping:  # said after the bar is closed, not drawn around it
                     break
         writer.flush()
     except BaseException:  # a diverged loss (FloatingPointError), a hook's exception, Ctrl-C
         close()
+        writer.close()
         raise
     train_s += time.perf_counter() - tic
     close()
-    if step < total and signals.received is None:  # a hook's stop (a signal's: Interrupted)
+    if step < total and not signals.requested:  # a hook's stop (a signal's: Interrupted)
         logging.info("stopped early at step %d of %d", step, total)
-    if signals.received is not None:
-        name = signal.Signals(signals.received).name
-        raise Interrupted(f"{name}: stopped at step {step} of {total} with a checkpoint; "
-                          "the same command resumes from it", 128 + signals.received)
+    if signals.requested:
+        writer.close()
+        signals.raise_if_requested(step, total)
     if history and history[-1]["step"] == step:  # stopped at an evaluation: no second one
         final = history[-1]
     else:
         final = evaluate(state, step)
-        writer.events.scalars(step, final, prefix="test/")
+        writer.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
     results = {"history": history, "final": final,
                "baselines": evaluate_baselines(train_data, test_data, protocol)}
     run_records.write_results(workdir, results)
-    writer.events.close()
-    return results
-
-
-# Model fields that may differ between a run and its scoring (``--mode=eval``): how the
-# matmuls are done and what only training reads (the inference options are a config of
-# their own, ``lift.InferenceConfig``).
-_SCORING_OPTIONS = ("matmul_precision", "z_equivariance", "z_equivariance_rot_angle",
-                    "n_rand_samples", "canonicalization_rot_angle", "weight_init_std")
-
-
-def _check_model(saved: dict | None, model_cfg: model.ModelConfig, template,
-                 workdir: str) -> None:
-    """Refuses in one line to score a workdir's checkpoints with a config whose model
-    differs from the one its run trained (other parameter shapes, or other settings such as
-    the input scale, which would score another function of the same parameters), naming
-    the fields that differ; ``matmul_precision`` and the fields only training reads
-    (``_SCORING_OPTIONS``) may differ, and the inference options are not the model's (a
-    saved model section that holds them, ``model.MOVED_TO_INFERENCE``, is read without
-    them)."""
-    if not saved or "model" not in saved:
-        return
-
-    def network(fields: dict) -> dict:
-        return {k: v for k, v in fields.items()
-                if k not in model.MOVED_TO_INFERENCE and k not in _SCORING_OPTIONS}
-
-    now = json.loads(json.dumps(model_cfg.to_dict()))  # tuples as the saved JSON lists
-    diffs = checkpoint.differences({"model": network(saved["model"])}, {"model": network(now)})
-    if not diffs:
-        return
-    trained = model.variables_shape(model.ModelConfig.from_dict(saved["model"]))
-    shaped = jax.tree.map(jnp.shape, trained) != jax.tree.map(jnp.shape, template)
-    more = f"; and {len(diffs) - 3} more" if len(diffs) > 3 else ""
-    what = "of another shape than" if shaped else "trained with other model settings than"
-    raise ValueError(f"{workdir} holds a network {what} the config's ({'; '.join(diffs[:3])}"
-                     f"{more}); evaluate it with the config it was trained with")
-
-
-def _inference_options(options: InferenceConfig, saved: dict | None) -> dict:
-    """The inference options of ``options`` that differ from the run's saved config's
-    (``lift.saved_options``: an option the run's config predates counts as its default,
-    which such a run used)."""
-    if not saved or "model" not in saved:
-        return {}
-    now = json.loads(json.dumps(options.to_dict()))  # tuples as the saved JSON lists
-    before = {**json.loads(json.dumps(InferenceConfig().to_dict())), **lift.saved_options(saved)}
-    return {k: v for k, v in now.items() if before[k] != v}
-
-
-@model.single_precision
-def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
-    """``--mode=eval``: scores the latest checkpoint in ``workdir`` on the test split.
-
-    Updates ``final`` and ``baselines`` of ``eval_results.json`` (``save=False``: returns
-    them without writing, as the command does until it has printed them, so that a
-    workdir it cannot write still shows its scores; not while a run trains there, nor over
-    final scores of a later step: ``run_records.left_unwritten``); its training history stays,
-    and the new ``final`` keeps the training clock of the latest record at or before the
-    checkpoint's step (``run_records.clock_at``). Where the config's inference options
-    (``config.inference``, checked against the model by ``lift.inference_config``) differ
-    from the run's, ``final["inference"]`` records those that differ, since the history's
-    records were made with the run's.
-    """
-    _check_workdir_is_a_folder(workdir)
-    train_data, test_data = load_splits(config.data)
-    _check_n_keypoints(train_data, test_data, config.model.n_keypoints)
-    saved = checkpoint.load_config(workdir)
-    config = resolve_from_data(config, train_data, saved)
-    spec = RunSpec.from_config(config)
-    model_cfg = spec.model
-    options = lift.inference_config(model_cfg, spec.inference)
-    template = model.variables_shape(model_cfg)
-    _check_model(saved, model_cfg, template, workdir)
-    variables, step = checkpoint.restore_variables(workdir, template)
-    _check_data(test_data, model_cfg, "test")
-    final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
-                           batch_size=config.train.eval_batch_size)
-    before = run_records.read_results(workdir)
-    clock = run_records.clock_at(before, step)
-    final = dict(step=step, epoch=step // spec.steps_per_epoch,
-                 **({} if clock is None else {"train_s": clock}), **final)
-    inference = _inference_options(options, saved)
-    if inference:
-        final["inference"] = inference
-    results = dict(before, final=final,
-                   baselines=evaluate_baselines(train_data, test_data, config.data.protocol))
-    if save:
-        why = run_records.left_unwritten(workdir, step)
-        if why is None:
-            run_records.write_results(workdir, results)
-        else:
-            logging.warning("scores not written to %s/eval_results.json: %s", workdir, why)
+    writer.close()
     return results

@@ -8,13 +8,22 @@ half-written checkpoint or a failure at the first evaluation minutes later.
 
 ``config`` is anything with ``to_dict()`` (a ``ConfigDict``) or a nested dict; fields it
 does not have are not checked (older configs, subsets built by experiments).
+
+Training and scoring also refuse, each in one line, a ``--workdir`` that is a file
+(``check_workdir_is_a_folder``) and, once the splits are loaded, keypoint counts that
+disagree (``check_split_keypoints``) or a split without what the model or the loss needs
+(``check_data``).
 """
 
 import dataclasses
 import math
+import os
 from typing import Any
 
+import numpy as np
+
 from c3dpo_jax import lift, losses, model, state
+from c3dpo_jax.data import KeypointData
 
 # Evaluation protocols (``evaluation.evaluate``) and "none": no 3D scores.
 PROTOCOLS = ("default", "up3d", "h36m", "pascal3d", "none")
@@ -260,3 +269,38 @@ def check_config(config) -> None:
     problems = config_problems(config)
     if problems:
         raise ValueError("invalid config: " + "; ".join(problems))
+
+
+def check_workdir_is_a_folder(workdir: str) -> None:
+    """Refuses a ``--workdir`` that names a file."""
+    if os.path.exists(workdir) and not os.path.isdir(workdir):
+        raise ValueError(f"the workdir {workdir} is a file; --workdir names a folder (made if "
+                         "missing)")
+
+
+def check_split_keypoints(train_data: KeypointData, test_data: KeypointData,
+                          n_keypoints: int) -> None:
+    """The splits' keypoint counts, against each other and then the model's: first of all,
+    since what is worked out from the data (``resolve.resolve_from_data``) assumes them
+    equal."""
+    if train_data.n_keypoints != test_data.n_keypoints:
+        raise ValueError(
+            f"the train split has {train_data.n_keypoints} keypoints and the test split "
+            f"{test_data.n_keypoints}: the two files disagree (config.data.train_path and "
+            "test_path must hold the same points)")
+    if train_data.n_keypoints != n_keypoints:
+        raise ValueError(
+            f"train split has {train_data.n_keypoints} keypoints but config.model.n_keypoints "
+            f"is {n_keypoints}; set --config.model.n_keypoints={train_data.n_keypoints}")
+
+
+def check_data(data: KeypointData, model_cfg: model.ModelConfig, split: str,
+               with_3d: bool = False) -> None:
+    """Refuses a split that lacks what the run needs: finite 3D points where the loss
+    trains with them (``with_3d``), intrinsics for a perspective model."""
+    if with_3d and (data.kp3d is None or not np.all(np.isfinite(data.kp3d))):
+        what = "none" if data.kp3d is None else "some that is not finite"
+        raise ValueError(f"config.loss.w_supervised > 0 trains with 3D ground truth, and the "
+                         f"{split} split has {what} (kp_loc_3d)")
+    if model_cfg.projection_type == "perspective" and data.intrinsics is None:
+        raise ValueError(f"perspective model but the {split} split has no intrinsics 'K'")

@@ -95,6 +95,22 @@ def load_script():
     return load
 
 
+@pytest.fixture(scope="session")
+def read_scalars():
+    """``read(logdir) -> {tag: [(step, value), ...]}``: the TensorBoard curves of a folder's
+    event files as TensorBoard shows them (its own reader, ``EventAccumulator``, which
+    applies a resumed run's purge of the steps it replays)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    def read(logdir) -> dict[str, list[tuple[int, float]]]:
+        events = EventAccumulator(str(logdir), size_guidance={"scalars": 0})  # 0: every point
+        events.Reload()
+        return {tag: [(e.step, e.value) for e in events.Scalars(tag)]
+                for tag in events.Tags()["scalars"]}
+
+    return read
+
+
 @pytest.fixture
 def key():
     return jax.random.key(0)

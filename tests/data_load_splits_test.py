@@ -105,7 +105,7 @@ def test_alike_view_size_ratio_compares_each_view_with_the_one_most_like_it():
 def _k_files(tmp_path, mode):
     """Files of 17 and 18 points; the run (``mode``) and own_json's smoke config (K = 17, a
     human body's handedness looked for: "auto")."""
-    from c3dpo_jax import train
+    from c3dpo_jax import evaluate_workdir, train
     from c3dpo_jax.data import json_dataset, synthetic
 
     for k in (17, 18):
@@ -113,7 +113,7 @@ def _k_files(tmp_path, mode):
                                     occlusion=0.0, noise=0.0, perspective=False, shape_seed=0,
                                     seed=3)
         json_dataset.save(data, str(tmp_path / f"k{k}.json"))
-    run = train.train_and_evaluate if mode == "train" else train.evaluate_checkpoint
+    run = train.train_and_evaluate if mode == "train" else evaluate_workdir.evaluate_checkpoint
     return run, own_json.get_config("smoke")
 
 

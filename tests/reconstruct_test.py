@@ -13,7 +13,7 @@ import optax
 import pytest
 
 import c3dpo_jax
-from c3dpo_jax import checkpoint, lift, model
+from c3dpo_jax import checkpoint, lift, model, run_config
 from c3dpo_jax.data import synthetic
 from c3dpo_jax.reconstruct import (
     C3DPOParams,
@@ -407,7 +407,7 @@ def test_load_reads_a_training_checkpoint_without_an_optimiser(params, tmp_path)
         checkpoint.save(manager, step, state, force=True)
     manager.wait_until_finished()
     manager.close()
-    checkpoint.save_config(workdir, {"model": CFG.to_dict()})
+    run_config.save_config(workdir, {"model": CFG.to_dict()})
     assert _same(load(workdir).variables, scaled[2])
     step_dir = os.path.join(workdir, checkpoint.CHECKPOINT_DIR, "2")
     files = [os.path.join(d, f) for d, _, fs in os.walk(step_dir) for f in fs]

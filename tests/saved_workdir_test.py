@@ -17,7 +17,7 @@ import shutil
 import numpy as np
 import pytest
 
-from c3dpo_jax import cli, train
+from c3dpo_jax import cli, evaluate_workdir
 from c3dpo_jax.reconstruct import load, reconstruct
 
 DATA = pathlib.Path(__file__).parent / "testdata"
@@ -46,7 +46,7 @@ def test_a_saved_workdir_scores_the_recorded_scores(tmp_path):
     config.unlock()
     config.inference.one_handedness = True
     config.inference.turns = 3
-    got = train.evaluate_checkpoint(config, str(workdir), save=False)
+    got = evaluate_workdir.evaluate_checkpoint(config, str(workdir), save=False)
     want = json.loads((DATA / "saved_workdir_scores.json").read_text())
     assert "inference" not in got["final"]  # the run's own options
     assert got["final"].keys() == want["final"].keys()

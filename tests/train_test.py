@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from c3dpo_jax import device_data, model, run_records, train
+from c3dpo_jax import device_data, evaluate_workdir, model, run_records, train, validation
 from c3dpo_jax.data import KeypointData, synthetic
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.state import OptimConfig, create_train_state, make_optimizer, make_schedule
@@ -201,7 +201,7 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
     # Scoring again with other inference options says which were used: the history's
     # records were made with the run's own.
     cfg.inference.refine_iters = 3
-    again = train.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
+    again = evaluate_workdir.evaluate_checkpoint(cfg, str(tmp_path / "whole"))
     assert again["final"]["inference"] == {"refine_iters": 3}
     assert "inference" not in whole["final"]  # main_test: nor when scored with the run's own
     # A workdir whose checkpoint is past the steps asked for is scored as it is, with a word.
@@ -213,12 +213,12 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
 
 def test_a_workdir_that_is_a_file_is_named(tmp_path):
     (tmp_path / "file").write_text("")
-    for run in (train.train_and_evaluate, train.evaluate_checkpoint):
+    for run in (train.train_and_evaluate, evaluate_workdir.evaluate_checkpoint):
         with pytest.raises(ValueError, match="is a file; --workdir names a folder"):
             run(_tiny_config(5), str(tmp_path / "file"))
 
 
-def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path):
+def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path, read_scalars):
     c = _tiny_config(20)
     c.train.eval_every_steps = 5
     whole = train.train_and_evaluate(c, str(tmp_path / "whole"))
@@ -237,9 +237,7 @@ def test_hooks_see_every_evaluation_and_a_stop_resumes_to_the_same_run(tmp_path)
     assert [h["step"] for h in resumed["history"]] == [5, 10, 15]
     assert resumed["final"]["mpjpe"] == pytest.approx(whole["final"]["mpjpe"], abs=1e-6)
     # TensorBoard, next to metrics.jsonl, shows the resumed run as one run.
-    from c3dpo_jax import tensorboard
-
-    curves = tensorboard.read_scalars(str(tmp_path / "split"))
+    curves = read_scalars(tmp_path / "split")
     assert [s for s, _ in curves["loss/reprojection"]] == [5, 10, 15, 20]
     assert curves["test/mpjpe"] == [(h["step"], pytest.approx(h["mpjpe"], rel=1e-6))
                                     for h in [*resumed["history"], resumed["final"]]]
@@ -446,19 +444,19 @@ def test_supervised_term_is_the_mean_distance_to_the_centred_truth(setup):
 def test_supervised_training_needs_finite_3d_points_in_the_training_split():
     data = synthetic.make_split(16, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.1,
                                 noise=0.0, perspective=False, shape_seed=0, seed=1)
-    train._check_data(data, CFG, "train", with_3d=True)
+    validation.check_data(data, CFG, "train", with_3d=True)
     for kp3d, what in ((None, "has none"), (np.full_like(data.kp3d, np.nan), "not finite")):
         bad = KeypointData(kp=data.kp, vis=data.vis, kp3d=kp3d)
         with pytest.raises(ValueError, match=f"w_supervised > 0 .* {what}"):
-            train._check_data(bad, CFG, "train", with_3d=True)
-        train._check_data(bad, CFG, "train")  # C3DPO itself never needs them
+            validation.check_data(bad, CFG, "train", with_3d=True)
+        validation.check_data(bad, CFG, "train")  # C3DPO itself never needs them
 
 
 def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
     """train.init_from: a new run starts from the source's parameters (at a learning rate of
     1e-9 they stay), with the source's input scale; a model of another architecture is a
     one-line error naming the setting."""
-    from c3dpo_jax import checkpoint, load
+    from c3dpo_jax import load, run_config
     from c3dpo_jax.data import auto_keypoint_rescale, load_splits
 
     source = str(tmp_path / "source")
@@ -470,7 +468,7 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
     assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
     theirs, ours = (load(str(tmp_path / d)).variables for d in ("source", "tuned"))
     chex.assert_trees_all_close(ours["params"], theirs["params"], atol=1e-6)
-    scales = [checkpoint.load_config(str(tmp_path / d))["model"]["keypoint_rescale"]
+    scales = [run_config.load_config(str(tmp_path / d))["model"]["keypoint_rescale"]
               for d in ("source", "tuned")]
     assert scales[0] == scales[1]
     assert auto_keypoint_rescale(load_splits(c.data)[0]) != scales[0]
@@ -481,18 +479,3 @@ def test_init_from_starts_a_run_from_another_runs_model(tmp_path):
         train.train_and_evaluate(wider, str(tmp_path / "wider"))
     shutil.rmtree(source)  # a resumed run needs only its own workdir
     assert train.train_and_evaluate(c, str(tmp_path / "tuned"))["final"]["step"] == 1
-
-
-def test_the_progress_bar_writes_whole_lines_when_stderr_is_not_a_terminal(monkeypatch):
-    import io
-
-    stream = io.StringIO()  # a log file or a pipe: isatty() is False
-    monkeypatch.setattr("sys.stderr", stream)
-    bar = train._progress_bar(total=100, desc="train", unit="step")
-    for _ in range(4):
-        bar.update(25)
-    bar.close()
-    lines = stream.getvalue().splitlines()
-    assert "\r" not in stream.getvalue() and stream.getvalue().endswith("\n")
-    assert lines[0].startswith("train:   0%") and "100/100" in lines[-1]
-    assert len(lines) <= 3  # the start, the end, and a line per 30 s between

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from c3dpo_jax import checkpoint, train
+from c3dpo_jax import checkpoint, run_config, train
 from c3dpo_jax.reconstruct import load
 from configs import default
 
@@ -24,7 +24,7 @@ def _config(**changes):
 def _workdir(tmp_path, with_checkpoint: bool):
     workdir = str(tmp_path / "w")
     os.makedirs(os.path.join(workdir, "checkpoints", "10" if with_checkpoint else ""))
-    checkpoint.save_config(workdir, _config().to_dict())
+    run_config.save_config(workdir, _config().to_dict())
     return workdir
 
 
@@ -56,12 +56,12 @@ def _workdir(tmp_path, with_checkpoint: bool):
 def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, named):
     workdir = _workdir(tmp_path, with_checkpoint=True)
     with pytest.raises(ValueError) as err:
-        checkpoint.check_workdir(workdir, _config(**change).to_dict())
+        run_config.check_workdir(workdir, _config(**change).to_dict())
     text = str(err.value)
     assert text.startswith(f"{workdir} holds checkpoints of another run (") and named in text
     assert "\n" not in text and "use a new --workdir" in text
     empty = _workdir(tmp_path / "empty", with_checkpoint=False)
-    checkpoint.check_workdir(empty, _config(**change).to_dict())  # nothing to protect
+    run_config.check_workdir(empty, _config(**change).to_dict())  # nothing to protect
 
 
 @pytest.mark.parametrize(
@@ -76,14 +76,14 @@ def test_another_run_is_refused_only_where_checkpoints_exist(tmp_path, change, n
     ],
 )
 def test_what_a_resumed_run_may_change(tmp_path, change):
-    checkpoint.check_workdir(_workdir(tmp_path, with_checkpoint=True), _config(**change).to_dict())
+    run_config.check_workdir(_workdir(tmp_path, with_checkpoint=True), _config(**change).to_dict())
 
 
 def test_fields_only_one_config_has_are_not_compared(tmp_path):
     workdir = _workdir(tmp_path, with_checkpoint=True)
     newer = _config().to_dict()
     newer["optim"]["an_option_added_later"] = 1
-    checkpoint.check_workdir(workdir, newer)
+    run_config.check_workdir(workdir, newer)
 
 
 def test_checkpoints_without_their_config_are_refused(tmp_path):
@@ -91,7 +91,7 @@ def test_checkpoints_without_their_config_are_refused(tmp_path):
     os.remove(os.path.join(workdir, "config.json"))
     with pytest.raises(ValueError, match="holds checkpoints but no config.json, so which run "
                                          "they belong to is unknown"):
-        checkpoint.check_workdir(workdir, _config().to_dict())
+        run_config.check_workdir(workdir, _config().to_dict())
 
 
 def test_the_same_training_data_under_another_path_is_the_same_run(tmp_path):
@@ -101,25 +101,25 @@ def test_the_same_training_data_under_another_path_is_the_same_run(tmp_path):
     os.makedirs(os.path.join(workdir, "checkpoints", "10"))
     saved = dict(_config(**{"data.train_path": "/data/a_train.json"}).to_dict(),
                  train_data_sha256="0123456789abcdef")
-    checkpoint.save_config(workdir, saved)
+    run_config.save_config(workdir, saved)
     moved = dict(saved, data=dict(saved["data"], train_path="elsewhere/a_train.json"))
-    checkpoint.check_workdir(workdir, moved)
+    run_config.check_workdir(workdir, moved)
     with pytest.raises(ValueError, match="train_data_sha256: '0123456789ab' in the checkpoint"):
-        checkpoint.check_workdir(workdir, dict(moved, train_data_sha256="fedcba9876543210"))
+        run_config.check_workdir(workdir, dict(moved, train_data_sha256="fedcba9876543210"))
 
 
 def test_config_json_is_replaced_whole(tmp_path):
-    checkpoint.save_config(str(tmp_path), {"a": 1})
-    checkpoint.save_config(str(tmp_path), {"a": 2})
+    run_config.save_config(str(tmp_path), {"a": 1})
+    run_config.save_config(str(tmp_path), {"a": 2})
     assert os.listdir(tmp_path) == ["config.json"]
-    assert checkpoint.load_config(str(tmp_path)) == {"a": 2}
+    assert run_config.load_config(str(tmp_path)) == {"a": 2}
 
 
 def test_a_damaged_config_json_is_named_in_one_line(tmp_path):
-    checkpoint.save_config(str(tmp_path), _config().to_dict())
+    run_config.save_config(str(tmp_path), _config().to_dict())
     path = tmp_path / "config.json"
     path.write_text(path.read_text()[:200])  # cut short, as by a full disk
-    for read in (checkpoint.load_config, load):
+    for read in (run_config.load_config, load):
         with pytest.raises(ValueError, match=f"^{path} is not valid JSON .*: it holds the run's"):
             read(str(tmp_path))
 
@@ -160,7 +160,7 @@ def test_a_training_file_edited_in_place_is_refused_on_resume(tmp_path):
     files = {"data.train_path": train_path, "data.test_path": test_path}
     workdir = str(tmp_path / "run")
     train.train_and_evaluate(_config(**files), workdir)
-    recorded = checkpoint.load_config(workdir)["train_data_sha256"]
+    recorded = run_config.load_config(workdir)["train_data_sha256"]
     train.train_and_evaluate(_config(**files), workdir)  # same file: resumes (re-evaluates)
     with open(train_path) as f:
         obj = json.load(f)
@@ -170,7 +170,7 @@ def test_a_training_file_edited_in_place_is_refused_on_resume(tmp_path):
         json.dump(obj, f)
     with pytest.raises(ValueError, match="train_data_sha256: '[0-9a-f]{12}' in the checkpoint"):
         train.train_and_evaluate(_config(**files), workdir)
-    assert checkpoint.load_config(workdir)["train_data_sha256"] == recorded  # untouched
+    assert run_config.load_config(workdir)["train_data_sha256"] == recorded  # untouched
 
 
 def _git(*args):
@@ -187,7 +187,7 @@ def test_the_workdir_records_the_software_and_a_resumption_by_other_software(
 
     workdir = str(tmp_path / "run")
     train.train_and_evaluate(_config(), workdir)
-    (record,) = checkpoint.load_config(workdir)["software"]
+    (record,) = run_config.load_config(workdir)["software"]
     assert record["c3dpo_jax"] == importlib.metadata.version("c3dpo_jax")
     assert record["jax"] == importlib.metadata.version("jax")
     assert record["git_commit"] == _git("rev-parse", "HEAD")  # None outside a git checkout
@@ -195,14 +195,14 @@ def test_the_workdir_records_the_software_and_a_resumption_by_other_software(
         dirty = _git("status", "--porcelain", "--untracked-files=no", "--", "c3dpo_jax")
         assert record["git_dirty"] == bool(dirty)
     train.train_and_evaluate(_config(), workdir)  # same software: one record
-    assert checkpoint.load_config(workdir)["software"] == [record]
+    assert run_config.load_config(workdir)["software"] == [record]
     other = dict(record, c3dpo_jax="9.9.9")
-    monkeypatch.setattr(checkpoint, "software_record", lambda: other)
+    monkeypatch.setattr(run_config, "software_record", lambda: other)
     train.train_and_evaluate(_config(**{"train.num_steps": 20}), workdir)
-    assert checkpoint.load_config(workdir)["software"] == [record, other]
+    assert run_config.load_config(workdir)["software"] == [record, other]
     fresh = str(tmp_path / "fresh")  # a new workdir starts its own history
     train.train_and_evaluate(_config(), fresh)
-    assert checkpoint.load_config(fresh)["software"] == [other]
+    assert run_config.load_config(fresh)["software"] == [other]
 
 
 def test_the_pictures_find_the_data_files_from_any_directory(tmp_path, monkeypatch, caplog):
@@ -221,7 +221,7 @@ def test_the_pictures_find_the_data_files_from_any_directory(tmp_path, monkeypat
     train.train_and_evaluate(
         _config(**{"data.train_path": "train.json", "data.test_path": "test.json"}), "../run")
     monkeypatch.chdir(tmp_path)  # elsewhere, the same relative paths name nothing
-    config = checkpoint.load_config("run")
+    config = run_config.load_config("run")
     assert config["data"]["test_path"] == "test.json"  # the config as given
     assert visualise.run_style(config) == {"y_up": True, "skeleton": [[0, 1]], "unit": ""}
     os.rename(tmp_path / "data", tmp_path / "moved")

@@ -142,9 +142,9 @@ def alike_view_size_ratio(data: KeypointData, n_views: int = 1500, seed: int = 0
     visible in both, at least half of them; ``ALIKE_POINTS`` evenly spaced points of larger
     sets), among ``n_views`` views drawn with ``seed``.
     Near 1 for a subject seen at one distance, whose views differ in size only with their
-    pose and viewpoint, which also change their shape (the development suite's sets:
-    1.01-1.07); about 1.5 for people at distances 0.5-2x apart. nan with fewer than 2
-    usable views."""
+    pose and viewpoint, which also change their shape; well above 1 for people seen at
+    different distances (evidence: experiments/dev_suite/data_variants.md, "People at
+    different distances"). nan with fewer than 2 usable views."""
     kp, vis = np.asarray(data.kp, np.float64), np.asarray(data.vis, np.float64)
     if len(data) > n_views:
         pick = np.sort(np.random.default_rng(seed).choice(len(data), n_views, replace=False))

@@ -16,7 +16,7 @@ of motion capture by upright cameras, false for COCO's image coordinates) and
 
 CLI::
 
-  python -m c3dpo_jax.data.importers sequence drink.npz --out_dir data/ --name drink
+  python -m c3dpo_jax.data.importers sequence clip.npz --out_dir data/ --name clip
   python -m c3dpo_jax.data.importers bvh walk.bvh --out_dir data/ --name walk
   python -m c3dpo_jax.data.importers coco person_keypoints.json --out_dir data/ --name coco
 

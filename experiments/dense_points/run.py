@@ -68,10 +68,10 @@ def score(workdir: str) -> dict:
             return json.load(f)
     import ml_collections
 
-    from c3dpo_jax import baselines, checkpoint, evaluation, load, reconstruct
+    from c3dpo_jax import baselines, evaluation, load, reconstruct, run_config
     from c3dpo_jax.data import KeypointData, load_splits
 
-    config = checkpoint.load_config(workdir)
+    config = run_config.load_config(workdir)
     train, test = load_splits(ml_collections.ConfigDict(config["data"]))
     pred = reconstruct(load(workdir), test.kp, test.vis).shape_3d
     joints = KeypointData(kp=test.kp[:, :N_JOINTS], vis=test.vis[:, :N_JOINTS],

@@ -7,9 +7,9 @@ the main job, ``python -m c3dpo_jax.main --config=configs/synthetic.py[:equiv|:b
 Each run is the README's quick-start command with ``--config.seed=S`` and ``--nofigures``
 (``--jobs`` at a time, each pinned to one core; a finished run is not run again). Each
 finished checkpoint is then scored again with two other inference options, without
-retraining (``train.evaluate_checkpoint``; kept in ``WORKDIR/inference.json``): Phi's single
-pass (``inference.refine_iters=0``, the release's inference) and one handedness for
-every view (``inference.one_handedness=True``). The table goes to
+retraining (``evaluate_workdir.evaluate_checkpoint``; kept in ``WORKDIR/inference.json``):
+Phi's single pass (``inference.refine_iters=0``, the release's inference) and one
+handedness for every view (``inference.one_handedness=True``). The table goes to
 ``--synthetic_out``/synthetic.md, with the command, the CPU and the jax version.
 """
 
@@ -68,7 +68,7 @@ def other_inference(method: str, seed: int, workdir: str, extra: list[str]) -> d
     if os.path.exists(path):
         with open(path) as f:
             return json.load(f)
-    from c3dpo_jax import cli, train
+    from c3dpo_jax import cli, evaluate_workdir
 
     scores = {}
     for name, options in INFERENCE.items():
@@ -76,7 +76,7 @@ def other_inference(method: str, seed: int, workdir: str, extra: list[str]) -> d
         config.unlock()
         override(config, {**_overrides(extra), "seed": seed,
                           **{f"inference.{k}": v for k, v in options.items()}})
-        scores[name] = train.evaluate_checkpoint(config, workdir, save=False)["final"]
+        scores[name] = evaluate_workdir.evaluate_checkpoint(config, workdir, save=False)["final"]
     with open(path, "w") as f:
         json.dump(scores, f, indent=1)
     return scores
