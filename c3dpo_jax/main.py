@@ -136,7 +136,7 @@ def main(argv):
     if "mirrored" in results["final"]:
         print("mirrored: the fraction of test views whose canonical shape, as the model "
               "lifts it before any handedness given at inference, has the other handedness "
-              "than most (0: one for all; about 0.5: a coin toss per view, docs/data.md)")
+              "than most (0: one for all; about 0.5: a coin toss per view, docs/inference.md)")
     if _MODE.value == "eval":  # after the table: a workdir it cannot write still shows it
         sys.stdout.flush()
         why = run_records.left_unwritten(_WORKDIR.value, results["final"]["step"])

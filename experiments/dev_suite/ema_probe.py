@@ -25,7 +25,7 @@ sys.path.insert(0, ROOT)
 import suite  # noqa: E402
 from runner import run_main  # noqa: E402
 
-from c3dpo_jax import lift, resolve, train  # noqa: E402
+from c3dpo_jax import inference, lift, resolve, train  # noqa: E402
 from c3dpo_jax.data import json_dataset  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -65,7 +65,7 @@ def main(argv):
         row = {"step": record["step"], "raw": record["mpjpe"],
                "raw_mirrored": record.get("mirrored")}
         for tau, params in emas.items():
-            res = train.evaluate_split({"params": params, "batch_stats": stats}, test_data,
+            res = inference.evaluate_split({"params": params, "batch_stats": stats}, test_data,
                                        spec.model, options, info["protocol"])
             row[f"ema{int(tau)}"] = res["mpjpe"]
         with open(path, "a") as f:
