@@ -55,26 +55,17 @@ def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VI
     return float(np.median(np.sqrt(error / np.maximum(radius, 1e-12))))
 
 
-def per_view_handedness(config) -> bool:
-    """Whether a reference body decides each view's handedness (``one_handedness`` on)
-    rather than the model's as a whole: per view for a model trained without the handedness
-    term, whose views can take both; one decision for a model trained with it, whose views
-    take one (evidence: experiments/dev_suite/handedness.md)."""
-    loss = config.get("loss", {})
-    return not (loss.get("w_handedness", 0.0) > 0 or (loss.get("w_handedness_final") or 0) > 0)
-
-
 def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
     """``inference.handedness_reference = "auto"`` means "from the data": a copy of
     ``config`` with the value (and ``one_handedness``) a saved config holds, else the
     built-in body (``bodies.HUMAN_BODIES``) of the model's number of points whose
     projections fit the training views best, if they fit it (``body_fit_2d`` below
-    ``BODY_FIT_2D``: points in its joint order), with ``one_handedness`` from
-    ``per_view_handedness``, else "mean_shape" (and ``one_handedness`` as it is). A body
-    file (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with the
-    reference "body" and the same ``one_handedness`` (a saved config's body, when it has
-    one: a resumed run keeps the body it started with). Other values are returned
-    unchanged."""
+    ``BODY_FIT_2D``: points in its joint order), with ``one_handedness`` on (the body decides
+    each view: a model's own views can split even when trained to one handedness; evidence:
+    experiments/dev_suite/handedness.md), else "mean_shape" (and ``one_handedness`` as it
+    is). A body file (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with
+    the reference "body" and ``one_handedness`` on (a saved config's body, when it has one:
+    a resumed run keeps the body it started with). Other values are returned unchanged."""
     reference = config.inference.handedness_reference
     before = lift.saved_options(saved or {})
     if bodies.is_body_file(reference):
@@ -87,7 +78,7 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
             raise ValueError(f"config.inference.handedness_reference={reference!r} ({why})")
         config.inference.handedness_reference = "body"
         config.inference.handedness_body = tuple(map(tuple, body.tolist()))
-        config.inference.one_handedness = per_view_handedness(config)
+        config.inference.one_handedness = True
         return config
     if reference != "auto":
         return config
@@ -104,7 +95,7 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     name = min(fits, key=fits.get, default=None)  # bodies of one number of points: the nearest
     if name is not None and fits[name] < BODY_FIT_2D:
         config.inference.handedness_reference = name
-        config.inference.one_handedness = per_view_handedness(config)
+        config.inference.one_handedness = True
         logging.info("handedness at inference from the %r body: the training views fit its "
                      "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
     return config

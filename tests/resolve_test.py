@@ -91,13 +91,12 @@ def test_coco_detections_of_people_at_different_distances_resolve_both_settings(
     c.model.n_keypoints = 17
     got = resolve.resolve_from_data(c, data)
     assert got.model.keypoint_scaling == "per_view"
-    assert (got.inference.handedness_reference, got.inference.one_handedness) == ("coco", False)
+    assert (got.inference.handedness_reference, got.inference.one_handedness) == ("coco", True)
 
 
 def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     """``"auto"``: people in the h36m body's joint order (the built-in humans' views, upright
-    cameras, self-occlusion) get the body's handedness (per view for a model trained
-    without the handedness term, one decision for the model trained with it), in COCO's
+    cameras, self-occlusion) get the body's handedness with one handedness on, in COCO's
     order (the face points' visibility the head's) the coco body's; the same
     views with their points in another order, another number of points, a perspective
     model or a value that is not "auto" keep what the config says; a saved config's value
@@ -114,13 +113,8 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     assert c.inference.handedness_reference == "auto"
     assert not c.inference.one_handedness
     got = resolve.resolve_handedness(c, people).inference
-    # own_json trains with the handedness term: one decision for the model, not per view
-    assert (got.handedness_reference, got.one_handedness) == ("h36m", False)
-    assert c.inference.handedness_reference == "auto"  # a copy
-    paper = own_json.get_config("paper")  # without the term: the body decides every view
-    paper.model.n_keypoints = 17
-    got = resolve.resolve_handedness(paper, people).inference
     assert (got.handedness_reference, got.one_handedness) == ("h36m", True)
+    assert c.inference.handedness_reference == "auto"  # a copy
     # The same people in COCO's order (the detectors'): the coco body fits, the h36m one not.
     vis = humans.coco_visibility_from_h36m(people.vis)  # the face: the head's
     coco = type(people)(kp=humans.coco_from_h36m(people.kp3d)[..., :2], vis=vis)
@@ -129,7 +123,7 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     assert resolve.body_fit_2d(body, coco) > 1.2 * resolve.BODY_FIT_2D
     assert resolve.body_fit_2d(coco_body, people) > 1.2 * resolve.BODY_FIT_2D
     got = resolve.resolve_handedness(c, coco).inference
-    assert (got.handedness_reference, got.one_handedness) == ("coco", False)
+    assert (got.handedness_reference, got.one_handedness) == ("coco", True)
     for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"}),
                          (people, {"n_keypoints": 20})):
         c2 = own_json.get_config()
