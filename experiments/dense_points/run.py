@@ -46,8 +46,9 @@ def run_name(k: int, seed: int) -> str:
 
 
 def command(k: int, seed: int, steps: int, workdir: str) -> list[str]:
-    """The CLI call of one run: configs/humans.py with ``k - 17`` surface points."""
-    return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py",
+    """The CLI call of one run: configs/humans.py:paper (the paper's objective) with
+    ``k - 17`` surface points."""
+    return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py:paper",
             f"--workdir={workdir}", "--nofigures",
             f"--config.data.humans.dense_points={k - N_JOINTS}",
             f"--config.seed={seed}", "--config.train.progress_bar=False",
@@ -93,7 +94,8 @@ def run_cost(out: str, counts: list[int]) -> None:
     for k in counts:
         path = os.path.join(out, "cost", f"k{k}.json")
         print(f"benchmark, {k} keypoints", flush=True)
-        subprocess.run([sys.executable, "-m", "c3dpo_jax.benchmark", "--config=configs/humans.py",
+        subprocess.run([sys.executable, "-m", "c3dpo_jax.benchmark",
+                        "--config=configs/humans.py:paper",
                         f"--config.data.humans.dense_points={k - N_JOINTS}", "--steps=10",
                         "--config.inference.refine_iters=0",  # the eval pass: Phi's
                         f"--json={path}"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)

@@ -37,8 +37,8 @@ import consistency  # noqa: E402
 from runner import machine, run_main  # noqa: E402
 
 # label, config spec, workdir name
-MODELS = (("C3DPO", "configs/humans.py", "full"),
-          ("C3DPO-equiv (no Psi)", "configs/humans.py:equiv", "equiv"))
+MODELS = (("C3DPO", "configs/humans.py:paper", "full"),
+          ("C3DPO-equiv (no Psi)", "configs/humans.py:equiv,paper", "equiv"))
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("out", None, "output directory (default: results/seedSEED beside this "

@@ -113,11 +113,11 @@ def rigid_mpjpe(train, test) -> float:
 
 
 def command(cell: dict, workdir: str, seed: int) -> list[str]:
-    """The CLI call of one cell: the built-in humans' recipe (configs/humans.py) on the
-    cell's files, ``--steps`` steps with the learning rate x0.1 for the last 20%, Phi's
-    single pass at inference."""
+    """The CLI call of one cell: the built-in humans' recipe with the paper's objective
+    (configs/humans.py:paper) on the cell's files, ``--steps`` steps with the learning rate
+    x0.1 for the last 20%, Phi's single pass at inference."""
     steps = FLAGS.steps
-    return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py",
+    return [sys.executable, "-m", "c3dpo_jax.main", "--config=configs/humans.py:paper",
             f"--workdir={workdir}", "--nofigures",
             f"--config.data.train_path={repo_path(cell['train'])}",
             f"--config.data.test_path={repo_path(cell['test'])}",
