@@ -57,10 +57,11 @@ def body_fit_2d(body: np.ndarray, data: KeypointData, n_views: int = BODY_FIT_VI
 
 def resolve_handedness(config, train_data: KeypointData, saved: dict | None = None):
     """``inference.handedness_reference = "auto"`` means "from the data": a copy of
-    ``config`` with the value (and ``one_handedness``) a saved config holds, else the
-    built-in body (``bodies.HUMAN_BODIES``) of the model's number of points whose
-    projections fit the training views best, if they fit it (``body_fit_2d`` below
-    ``BODY_FIT_2D``: points in its joint order), with ``one_handedness`` on (the body decides
+    ``config`` with the value (and ``one_handedness``, or on if ``config`` turns it on) a
+    saved config holds, else the built-in body (``bodies.HUMAN_BODIES``) of the model's
+    number of points whose projections fit the training views best, if they fit it
+    (``body_fit_2d`` below ``BODY_FIT_2D``: points in its joint order), with
+    ``one_handedness`` on (the body decides
     each view: a model's own views can split even when trained to one handedness; evidence:
     experiments/dev_suite/handedness.md), else "mean_shape" (and ``one_handedness`` as it
     is). A body file (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with
@@ -85,7 +86,9 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     config = config.copy_and_resolve_references()
     if before.get("handedness_reference", "auto") != "auto":
         config.inference.handedness_reference = before["handedness_reference"]
-        config.inference.one_handedness = bool(before.get("one_handedness"))
+        # one_handedness=True given now (e.g. --mode=eval) holds beside the saved reference
+        config.inference.one_handedness = (bool(before.get("one_handedness"))
+                                           or bool(config.inference.one_handedness))
         return config
     config.inference.handedness_reference = "mean_shape"
     if config.model.projection_type != "orthographic":

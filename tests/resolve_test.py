@@ -137,5 +137,12 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
                              "test_time_one_handedness": True}}):
         got = resolve.resolve_handedness(c, people, saved).inference
         assert (got.handedness_reference, got.one_handedness) == ("mean_shape", True)
+    # A saved model without one handedness, scored with it asked for (--mode=eval): it holds.
+    saved = {"inference": {"handedness_reference": "mean_shape", "one_handedness": False}}
+    assert not resolve.resolve_handedness(c, people, saved).inference.one_handedness
+    asked = c.copy_and_resolve_references()
+    asked.inference.one_handedness = True
+    got = resolve.resolve_handedness(asked, people, saved).inference
+    assert (got.handedness_reference, got.one_handedness) == ("mean_shape", True)
     c.inference.handedness_reference = "mean_shape"
     assert resolve.resolve_handedness(c, people) is c
