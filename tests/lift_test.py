@@ -9,33 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_model import CFG, ONE_PASS, eval_pass, input_dependent_variables, perfect_variables, views
 
 from c3dpo_jax import evaluation, inference, lift, model
 from c3dpo_jax.data import KeypointData, synthetic
-
-CFG = model.ModelConfig(
-    n_keypoints=8, shape_basis_size=3, n_fully_connected=16, n_layers=1,
-    canonicalization_n_fully_connected=16, canonicalization_n_layers=1, n_rand_samples=3,
-    argmin_translation=True,
-)
-ONE_PASS = lift.InferenceConfig()  # the release's inference
-
-
-def _batch(n=6, seed=0):
-    data = synthetic.make_split(n, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.3,
-                                noise=0.0, perspective=False, shape_seed=0, seed=seed)
-    return data, {k: jnp.asarray(v) for k, v in data.model_inputs().items()}
-
-
-def _perfect_variables(cfg, shape):
-    """Heads zeroed: alpha = 0, theta = 0 (R = I) and the mean shape = ``shape``."""
-    variables = model.init_variables(jax.random.key(0), cfg)
-    params = jax.tree_util.tree_map_with_path(
-        lambda path, p: jnp.zeros_like(p) if any(
-            getattr(k, "key", "").endswith(("_layer", "_layer_psi")) for k in path) else p,
-        variables["params"])
-    params["shape_layer"]["bias"] = jnp.asarray(shape.T.reshape(-1))
-    return dict(variables, params=params)
 
 
 def _turned_numpy(cfg, options, variables, kp, vis, turns, span="augmentation", keep_ratio=1.1):
@@ -56,7 +33,7 @@ def _turned_numpy(cfg, options, variables, kp, vis, turns, span="augmentation", 
     for a in angles:
         turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         turned = (kp - centre) @ turn.T + centre
-        out = _eval(cfg, variables, jnp.asarray(turned, jnp.float32), jnp.asarray(vis), one)
+        out = eval_pass(cfg, variables, jnp.asarray(turned, jnp.float32), jnp.asarray(vis), one)
         depths.append(np.asarray(out["shape_camera"][..., 2], np.float64))
         dist = np.linalg.norm(np.asarray(out["kp_reprojected"], np.float64) - turned, axis=-1)
         fits.append((dist * vis).sum(1) / vis.sum(1))
@@ -74,38 +51,20 @@ def _turned_numpy(cfg, options, variables, kp, vis, turns, span="augmentation", 
     return median + means[0], centred, agree, keep
 
 
-def _input_dependent_variables(cfg):
-    """Heads scaled up: a freshly initialised model barely depends on its input."""
-    variables = model.init_variables(jax.random.key(4), cfg)
-    variables["params"] = jax.tree_util.tree_map_with_path(
-        lambda path, p: p * 1000.0 if any(
-            getattr(k, "key", "") in ("alpha_layer", "rot_layer") for k in path) else p,
-        variables["params"])
-    return variables
-
-
 def _evaluated(cfg, options, seed):
     """``(variables, data, out)``: input-dependent variables, a batch's data and the jitted
     eval pass of ``cfg`` with ``options`` on the batch."""
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=seed)
-    return variables, data, _eval(cfg, variables, batch["kp"], batch["vis"], options)
-
-
-def _eval(cfg, variables, kp, vis, options=ONE_PASS):
-    """The jitted eval pass of ``cfg`` with ``options`` on a batch (every point in the
-    class), with the body the options name."""
-    fn = partial(lift.forward_eval, variables, cfg=cfg, options=options)
-    return jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, None)))(
-        kp, vis, jnp.ones_like(vis), None, lift.options_body(options))
+    variables = input_dependent_variables(cfg)
+    data, batch = views(seed=seed)
+    return variables, data, eval_pass(cfg, variables, batch["kp"], batch["vis"], options)
 
 
 def test_turns_give_the_median_depth_of_copies_turned_in_plane():
     cfg = dataclasses.replace(CFG, z_augment=True, z_augment_rot_angle=0.4)
     options = lift.InferenceConfig(turns=5)
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=5)
-    turned = _eval(cfg, variables, batch["kp"], batch["vis"], options)
+    variables = input_dependent_variables(cfg)
+    data, batch = views(seed=5)
+    turned = eval_pass(cfg, variables, batch["kp"], batch["vis"], options)
     want, copies, agree, _ = _turned_numpy(cfg, options, variables, data.kp, data.vis, 5)
     # The copies differ (so the median matters), some with the other depth sign.
     assert np.abs(copies - copies[0]).max() > 0.3 * np.abs(copies).max()
@@ -114,7 +73,7 @@ def test_turns_give_the_median_depth_of_copies_turned_in_plane():
     np.testing.assert_allclose(turned["shape_3d"][..., 2], want / cfg.keypoint_rescale,
                                atol=2e-4)
     # Only the depth changes: the image x, y, the reprojection and the camera are the view's.
-    single = _eval(cfg, variables, batch["kp"], batch["vis"])
+    single = eval_pass(cfg, variables, batch["kp"], batch["vis"])
     for name in ("kp_reprojected", "rotation", "alpha", "shape_canonical", "dist_sq"):
         np.testing.assert_allclose(turned[name], single[name], atol=1e-5, err_msg=name)
     np.testing.assert_allclose(turned["shape_3d"][..., :2],
@@ -205,8 +164,9 @@ def test_refinement_reaches_the_minimum_scipy_finds_from_phi_s_output():
 
     cfg = CFG
     variables, kp, vis = _basis_views(cfg)
-    phi = _eval(cfg, variables, kp, vis)
-    out = _eval(cfg, variables, kp, vis, lift.InferenceConfig(refine_iters=20, refine_prior=0.3))
+    phi = eval_pass(cfg, variables, kp, vis)
+    refined = lift.InferenceConfig(refine_iters=20, refine_prior=0.3)
+    out = eval_pass(cfg, variables, kp, vis, refined)
     for i in range(len(kp)):
         def residuals(p, i=i):
             return _refinement_residuals_numpy(variables, phi["kp_norm"][i], vis[i],
@@ -235,10 +195,10 @@ def test_refinement_recovers_the_camera_of_a_view_of_the_model_s_own_shape():
     cfg = dataclasses.replace(CFG, z_equivariance=False, z_augment=False)
     shape = synthetic.shape_model(8, 2, 0.3, seed=0)[0]
     shape = shape - shape.mean(0)
-    variables = _perfect_variables(cfg, shape)
+    variables = perfect_variables(cfg, shape)
     truth = Rotation.from_rotvec([[0.4, -0.2, 0.1], [-0.3, 0.0, 0.35], [0.1, 0.4, -0.2]])
     cams = np.einsum("bij,nj->bni", truth.as_matrix(), shape)
-    out = _eval(cfg, variables, jnp.asarray(cams[..., :2] + 2.0, jnp.float32),
+    out = eval_pass(cfg, variables, jnp.asarray(cams[..., :2] + 2.0, jnp.float32),
                 jnp.ones((3, 8)), lift.InferenceConfig(refine_iters=30))
     np.testing.assert_allclose(out["rotation"], truth.as_matrix(), atol=1e-4)
     depth = out["shape_camera"][..., 2] - np.mean(out["shape_camera"][..., 2], 1, keepdims=True)
@@ -256,7 +216,7 @@ def test_every_turned_copy_is_refined():
     unrefined, _, _, _ = _turned_numpy(cfg, dataclasses.replace(options, refine_iters=0),
                                        variables, kp, vis, 5)
     assert np.abs(unrefined - want).max() > 1e-2
-    np.testing.assert_allclose(_eval(cfg, variables, kp, vis, options)["shape_camera"][..., 2],
+    np.testing.assert_allclose(eval_pass(cfg, variables, kp, vis, options)["shape_camera"][..., 2],
                                want, atol=2e-4)
 
 
@@ -356,8 +316,8 @@ def test_a_body_reference_gives_every_view_the_body_s_handedness():
     kp = jnp.asarray(rng.normal(size=(6, 17, 2)), jnp.float32)
     vis = jnp.ones((6, 17), jnp.float32)
     h36m = lift.InferenceConfig(one_handedness=True, handedness_reference="h36m")
-    on = _eval(cfg, variables, kp, vis, h36m)
-    off = _eval(cfg, variables, kp, vis)
+    on = eval_pass(cfg, variables, kp, vis, h36m)
+    off = eval_pass(cfg, variables, kp, vis)
     np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
     for x in np.asarray(on["shape_camera"], np.float64):
         x = x - x.mean(0)
@@ -381,7 +341,7 @@ def test_a_body_reference_gives_every_view_the_body_s_handedness():
 
 def test_one_handedness_in_the_eval_pass_leaves_the_2d_fit_and_flip_resolved_depth():
     variables, data, off = _evaluated(CFG, ONE_PASS, seed=3)
-    on = _eval(CFG, variables, jnp.asarray(data.kp, jnp.float32),
+    on = eval_pass(CFG, variables, jnp.asarray(data.kp, jnp.float32),
                jnp.asarray(data.vis, jnp.float32), lift.InferenceConfig(one_handedness=True))
     np.testing.assert_allclose(on["kp_reprojected"], off["kp_reprojected"], atol=1e-5)
     for i in range(len(data.kp)):
@@ -481,7 +441,7 @@ def test_a_body_without_one_handedness_gives_the_whole_model_one_mirror_decision
     rng = np.random.default_rng(11)
     body = rng.normal(size=(k, 3)) * [1.0, 0.8, 0.5]
     mean = body + 0.3 * rng.normal(size=(k, 3))
-    variables = _input_dependent_variables(cfg)  # coefficients far from 0
+    variables = input_dependent_variables(cfg)  # coefficients far from 0
     layer = variables["params"]["shape_layer"]
     layer["bias"] = jnp.asarray(mean.T.reshape(-1), jnp.float32)
     # Basis vectors that put the views' own shapes on both sides of the body.
@@ -493,7 +453,7 @@ def test_a_body_without_one_handedness_gives_the_whole_model_one_mirror_decision
     vis = jnp.ones((10, k), jnp.float32)
 
     def lifted(options=ONE_PASS):
-        return {n: np.asarray(a) for n, a in _eval(cfg, variables, kp, vis, options).items()}
+        return {n: np.asarray(a) for n, a in eval_pass(cfg, variables, kp, vis, options).items()}
 
     off = lifted()
 

@@ -8,22 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_model import CFG, ONE_PASS, eval_pass, input_dependent_variables, perfect_variables, views
 
 from c3dpo_jax import lift, losses, model
 from c3dpo_jax.data import synthetic
-
-CFG = model.ModelConfig(
-    n_keypoints=8, shape_basis_size=3, n_fully_connected=16, n_layers=1,
-    canonicalization_n_fully_connected=16, canonicalization_n_layers=1, n_rand_samples=3,
-    argmin_translation=True,
-)
-ONE_PASS = lift.InferenceConfig()  # the release's inference
-
-
-def _batch(n=6, seed=0):
-    data = synthetic.make_split(n, n_keypoints=8, n_modes=2, deformation=0.3, occlusion=0.3,
-                                noise=0.0, perspective=False, shape_seed=0, seed=seed)
-    return data, {k: jnp.asarray(v) for k, v in data.model_inputs().items()}
 
 
 @partial(jax.jit, static_argnums=0)  # one compile per config instead of op-by-op dispatch
@@ -35,21 +23,10 @@ def _train_terms(cfg, variables, batch, key):
         variables, batch["kp"], batch["vis"], batch["class_mask"], None, rotations)
 
 
-def _perfect_variables(cfg, shape):
-    """Heads zeroed: alpha = 0, theta = 0 (R = I) and the mean shape = ``shape``."""
-    variables = model.init_variables(jax.random.key(0), cfg)
-    params = jax.tree_util.tree_map_with_path(
-        lambda path, p: jnp.zeros_like(p) if any(
-            getattr(k, "key", "").endswith(("_layer", "_layer_psi")) for k in path) else p,
-        variables["params"])
-    params["shape_layer"]["bias"] = jnp.asarray(shape.T.reshape(-1))
-    return dict(variables, params=params)
-
-
 def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
     cfg = dataclasses.replace(CFG, z_equivariance=False, z_augment=False)
     shape = synthetic.shape_model(8, 2, 0.3, seed=0)[0]
-    variables = _perfect_variables(cfg, shape)
+    variables = perfect_variables(cfg, shape)
     vis = (
         jnp.asarray(np.random.default_rng(1).uniform(size=(4, 8)) > 0.3, jnp.float32)
         .at[:, :3]
@@ -71,7 +48,7 @@ def test_losses_are_zero_when_the_model_explains_the_view_exactly(key):
 def test_invisible_coordinates_change_nothing_in_training(key, variant):
     cfg = dataclasses.replace(CFG, **variant)
     variables = model.init_variables(jax.random.key(1), cfg)
-    _, batch = _batch()
+    _, batch = views()
     moved = dict(batch, kp=jnp.where(batch["vis"][..., None] > 0, batch["kp"], 123.0))
     terms, stats = _train_terms(cfg, variables, batch, key)
     terms2, stats2 = _train_terms(cfg, variables, moved, key)
@@ -84,7 +61,7 @@ def test_invisible_coordinates_change_nothing_in_training(key, variant):
 
 def test_eval_keeps_visible_input_points_and_is_batch_independent():
     variables = model.init_variables(jax.random.key(2), CFG)
-    data, batch = _batch(seed=3)
+    data, batch = views(seed=3)
     outs = jax.vmap(partial(lift.forward_eval, variables, body=None, cfg=CFG, options=ONE_PASS),
                     in_axes=(0, 0, 0, None))(batch["kp"], batch["vis"], batch["class_mask"], None)
     vis = data.vis > 0
@@ -133,7 +110,7 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     monkeypatch.setattr(model, "_precision", recording)
     cfg = dataclasses.replace(CFG, matmul_precision="highest")
     variables = model.init_variables(jax.random.key(0), cfg)
-    _, batch = _batch()
+    _, batch = views()
     jax.jit(lift.forward_eval, static_argnums=(6, 7))(  # the configs passed positionally
         variables, batch["kp"][0], batch["vis"][0], batch["class_mask"][0], None, None, cfg,
         ONE_PASS)
@@ -145,23 +122,6 @@ def test_both_forward_passes_trace_under_the_configured_matmul_precision(monkeyp
     assert seen == ["highest", "highest"]
 
 
-def _input_dependent_variables(cfg):
-    """Heads scaled up: a freshly initialised model barely depends on its input."""
-    variables = model.init_variables(jax.random.key(4), cfg)
-    variables["params"] = jax.tree_util.tree_map_with_path(
-        lambda path, p: p * 1000.0 if any(
-            getattr(k, "key", "") in ("alpha_layer", "rot_layer") for k in path) else p,
-        variables["params"])
-    return variables
-
-
-def _eval(cfg, variables, kp, vis):
-    """The jitted eval pass of ``cfg`` (one pass) on a batch (every point in the class)."""
-    return jax.jit(jax.vmap(partial(lift.forward_eval, variables, body=None, cfg=cfg,
-                                    options=ONE_PASS),
-                            in_axes=(0, 0, 0, None)))(kp, vis, jnp.ones_like(vis), None)
-
-
 def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     """``keypoint_scaling="per_view"``: a view scaled by s and shifted gives the same
     canonical shape and normalised visible points and the 3D output scaled by s (depth too)
@@ -170,12 +130,12 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     global input scale change nothing; a view whose points coincide stays finite; an
     unknown, unresolved or perspective setting is refused."""
     cfg = dataclasses.replace(CFG, keypoint_scaling="per_view", keypoint_rescale=0.3)
-    variables = _input_dependent_variables(cfg)
-    data, batch = _batch(seed=3)
+    variables = input_dependent_variables(cfg)
+    data, batch = views(seed=3)
     kp, vis = batch["kp"], batch["vis"]
     s = jnp.asarray([0.5, 2.0, 1.0, 3.0, 0.25, 1.5])[:, None, None]
     shift = jnp.asarray([[[4.0, -2.0]]])
-    a, b = _eval(cfg, variables, kp, vis), _eval(cfg, variables, kp * s + shift, vis)
+    a, b = eval_pass(cfg, variables, kp, vis), eval_pass(cfg, variables, kp * s + shift, vis)
     np.testing.assert_allclose(b["shape_canonical"], a["shape_canonical"], atol=1e-5)
     np.testing.assert_allclose(b["kp_scale"], a["kp_scale"] / np.asarray(s)[:, 0, 0], rtol=1e-5)
     shown = np.asarray(vis)[..., None]  # hidden points' values are masked by the network
@@ -184,20 +144,20 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
     expected[..., :2] += np.asarray(shift)
     np.testing.assert_allclose(b["shape_3d"], expected, rtol=1e-4, atol=1e-4)
     hidden = jnp.where(vis[..., None] > 0, kp, 1e6)
-    np.testing.assert_allclose(_eval(cfg, variables, hidden, vis)["shape_3d"],
+    np.testing.assert_allclose(eval_pass(cfg, variables, hidden, vis)["shape_3d"],
                                a["shape_3d"], atol=1e-5)
     other_rescale = dataclasses.replace(cfg, keypoint_rescale=3.0)
-    np.testing.assert_allclose(_eval(other_rescale, variables, kp, vis)["shape_3d"],
+    np.testing.assert_allclose(eval_pass(other_rescale, variables, kp, vis)["shape_3d"],
                                a["shape_3d"], rtol=1e-4, atol=1e-5)
     terms_a, _ = _train_terms(cfg, variables, batch, key)
     terms_b, _ = _train_terms(cfg, variables, dict(batch, kp=kp * s + shift), key)
     np.testing.assert_allclose(terms_b["dist_sq"] * vis, terms_a["dist_sq"] * vis, rtol=1e-3,
                                atol=1e-6)
     plain = dataclasses.replace(cfg, keypoint_scaling="global")
-    assert not np.allclose(_eval(plain, variables, kp * s, vis)["shape_canonical"],
-                           _eval(plain, variables, kp, vis)["shape_canonical"], atol=1e-3)
+    assert not np.allclose(eval_pass(plain, variables, kp * s, vis)["shape_canonical"],
+                           eval_pass(plain, variables, kp, vis)["shape_canonical"], atol=1e-3)
     point = jnp.broadcast_to(kp[:1, :1], kp[:1].shape)
-    assert np.isfinite(np.asarray(_eval(cfg, variables, point, vis[:1])["shape_3d"])).all()
+    assert np.isfinite(np.asarray(eval_pass(cfg, variables, point, vis[:1])["shape_3d"])).all()
     with pytest.raises(ValueError, match=r"keypoint_scaling='per_view' \(must be 'global' or "
                        r"'auto' for a perspective model"):
         dataclasses.replace(cfg, projection_type="perspective")
@@ -205,4 +165,4 @@ def test_per_view_scaling_makes_the_reconstruction_scale_with_the_view(key):
                        r"auto\)"):
         dataclasses.replace(cfg, keypoint_scaling="each")
     with pytest.raises(ValueError, match=r"keypoint_scaling='auto' means 'from the training"):
-        _eval(dataclasses.replace(cfg, keypoint_scaling="auto"), variables, kp, vis)
+        eval_pass(dataclasses.replace(cfg, keypoint_scaling="auto"), variables, kp, vis)
