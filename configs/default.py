@@ -151,10 +151,10 @@ def one_handedness(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     0.02) on each canonical shape's handedness evidence against the basis' mean shape
     (``losses.handedness``: how much better a proper rotation than a reflection aligns
     them) keeps a view from being lifted as the mirror image of the others, which fits its
-    2D points as well; at inference the
-    handedness reference is taken from the data (``resolve.resolve_handedness``: a built-in
-    body whose joint order the views fit, else the model's own). ``:paper`` turns the term
-    off (evidence: experiments/dev_suite/handedness.md)."""
+    2D points as well; at inference the handedness reference is taken from the data
+    (``resolve.resolve_handedness``: a built-in body whose joint order the views fit, else
+    the model's own). ``:paper`` turns the term off (evidence:
+    experiments/dev_suite/handedness.md)."""
     c.loss.w_handedness, c.loss.handedness_margin = 10.0, 0.02
     c.inference.handedness_reference = "auto"
     return c

@@ -716,7 +716,6 @@ def one_example_body(run: str) -> list[float]:
     return [own, mean_shape, bodies.min(), float(np.median(bodies)), bodies.max(), resolved]
 
 
-
 REFERENCE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global", "as it is",
                      "as it is, the reference's one decision", "the reference per view",
                      "the mean shape per view", "reference: 0 built-in body, 1 a 3D example"]
@@ -739,18 +738,22 @@ def reference(run: str) -> list[float]:
         with np.load(os.path.join(FLAGS.data_root, folder, f"{full}.npz")) as z:
             body, kind = np.swapaxes(z["X"], 1, 2)[0], 1.0
 
-    def as_is(**options):
-        options = dict(dict(one_handedness=False, handedness_reference="mean_shape"), **options)
-        per = _per_view(c3dpo_jax.reconstruct(model, test.kp, test.vis, **options).shape_3d,
-                        test)
-        return per
+    def per_view(**options) -> dict:
+        """Per-view errors as they are with ``options`` (else the model's own handedness)."""
+        options = {"one_handedness": False, "handedness_reference": "mean_shape", **options}
+        return _per_view(c3dpo_jax.reconstruct(model, test.kp, test.vis, **options).shape_3d,
+                         test)
 
-    own = as_is()
+    def as_is(**options) -> float:
+        return float(np.mean(per_view(**options)["mpjpe_orig"]))
+
+    own = per_view()
     orig, flip = float(np.mean(own["mpjpe_orig"])), float(np.mean(own["mpjpe_flip"]))
     return [float(np.mean(np.minimum(own["mpjpe_orig"], own["mpjpe_flip"]))), min(orig, flip),
-            orig, float(np.mean(as_is(handedness_reference=body)["mpjpe_orig"])),
-            float(np.mean(as_is(handedness_reference=body, one_handedness=True)["mpjpe_orig"])),
-            float(np.mean(as_is(one_handedness=True)["mpjpe_orig"])), kind]
+            orig, as_is(handedness_reference=body),
+            as_is(handedness_reference=body, one_handedness=True), as_is(one_handedness=True),
+            kind]
+
 
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
 _H36M_PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
