@@ -41,6 +41,8 @@ TURN_RANGE_SLACK = 1e-3
 # What the views' handedness can be taken from, with the number of points of the body's
 # joint order: the basis' mean shape (None) or a built-in body (``bodies.HUMAN_BODIES``).
 HANDEDNESS_REFERENCES = {"mean_shape": None, **bodies.HUMAN_BODIES}
+# The ways of weighing a shape's handedness against a reference (``evidence``).
+HANDEDNESS_EVIDENCE = ("procrustes", "tetrahedra")
 # Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
 # cost (accepted) and after one that does not (rejected, the damping raised).
 REFINE_DAMPING, REFINE_DAMPING_DOWN, REFINE_DAMPING_UP = 1e-3, 0.3, 10.0
@@ -93,6 +95,10 @@ class InferenceConfig:
       handedness_body: with "body": one 3D example of the points, N rows of (x, y, z) in
         the model's order, in any position, orientation and scale (a frame of motion
         capture, a rig's rest pose).
+      handedness_evidence: how ``one_handedness`` weighs a view's handedness against the
+        reference: "procrustes" (the whole shape: is a proper rotation or a reflection the
+        better map onto it) or "tetrahedra" (its small parts: do the tetrahedra of each
+        point and its three nearest keep their chirality; ``local_handedness_evidence``).
       replace_keypoints_with_input: the 3D output's x, y at visible points are the input
         itself (as the release), else the reprojection.
     """
@@ -104,6 +110,7 @@ class InferenceConfig:
     one_handedness: bool = False
     handedness_reference: str = "mean_shape"
     handedness_body: tuple = ()
+    handedness_evidence: str = "procrustes"
     replace_keypoints_with_input: bool = True
 
     def __post_init__(self):
@@ -171,6 +178,9 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
     found += [f"{name}={v[name]!r} (must be True or False)"
               for name in ("one_handedness", "replace_keypoints_with_input")
               if not isinstance(v[name], bool | np.bool_)]
+    if v["handedness_evidence"] not in HANDEDNESS_EVIDENCE:
+        found.append(f"handedness_evidence={v['handedness_evidence']!r} (must be one of "
+                     + ", ".join(repr(k) for k in HANDEDNESS_EVIDENCE) + ")")
     reference, body = v["handedness_reference"], v["handedness_body"]
     known = (*HANDEDNESS_REFERENCES, "body", "auto")
     if not (isinstance(reference, str) and (reference in known or bodies.is_body_file(reference))):
@@ -379,22 +389,69 @@ def handedness_evidence(x, reference, class_mask, floor=0.0):
     return (mirror - proper) / jnp.maximum(mirror + proper, 1e-12)
 
 
-def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None):
+def _tetrahedra(reference, class_mask):
+    """(N, 4) point indices: each point of ``reference`` (N, 3) and its three nearest points
+    of the class there, and (N,) 1.0 where all four are the class's points, else 0.0."""
+    n = reference.shape[0]
+    inside = class_mask > 0
+    d = jnp.sum((reference[:, None] - reference[None]) ** 2, -1)
+    d = jnp.where(inside[None] & ~jnp.eye(n, dtype=bool), d, jnp.inf)
+    _, near = jax.lax.top_k(-d, 3)
+    tetra = jnp.concatenate([jnp.arange(n)[:, None], near], 1)
+    return tetra, jnp.all(inside[tetra], 1).astype(reference.dtype)
+
+
+def _signed_volumes(x, tetra, floor):
+    """(T,) each tetrahedron's signed volume over the product of its three edges from its
+    first point (the sine-like chirality of its corner, in [-1, 1])."""
+    edges = x[tetra[:, 1:]] - x[tetra[:, :1]]
+    lengths = jnp.sqrt(jnp.sum(edges ** 2, -1) + floor)
+    return jnp.linalg.det(edges) / jnp.maximum(jnp.prod(lengths, -1), 1e-12)
+
+
+def local_handedness_evidence(x, reference, class_mask, floor=0.0):
+    """How much the shape ``x`` (N, 3) keeps the chirality of ``reference``'s small
+    tetrahedra, each point with its three nearest points there: the sum over them of the
+    reference's signed volume times ``x``'s (each over the product of its edges) over the
+    sum of the reference's absolute ones, in [-1, 1] (negative: nearer the mirror image).
+    Unchanged by a rotation or a scale of ``x``, negated by its mirror image. Unlike
+    ``handedness_evidence`` it reads local parts (a torso, a foot), which keep their
+    chirality when the pose as a whole turns far from the reference's (evidence:
+    experiments/dev_suite/handedness.md, "Local handedness")."""
+    tetra, inside = _tetrahedra(reference, class_mask)
+    w = _signed_volumes(reference, tetra, 0.0) * inside
+    return jnp.sum(w * _signed_volumes(x, tetra, floor)) / jnp.maximum(jnp.sum(jnp.abs(w)),
+                                                                        1e-12)
+
+
+def evidence(kind: str):
+    """The evidence function ``(x, reference, class_mask, floor=0.0) -> [-1, 1]`` that
+    ``kind`` (one of ``HANDEDNESS_EVIDENCE``) names."""
+    return {"procrustes": handedness_evidence,
+            "tetrahedra": local_handedness_evidence}[kind]
+
+
+def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None,
+                   kind="procrustes"):
     """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
     ``x_canon`` is nearer, up to a proper rotation, to the mirror image of ``reference``
-    (N, 3), by default the basis' mean shape, than to the reference itself (the best
-    orthogonal map from one centred shape onto the other is then a reflection: det of their
-    cross-covariance < 0; comparing the two Procrustes residuals says the same). With a
-    tuple of references, mirrored when the sum of their ``handedness_evidence`` is
-    negative. The mirror image: the camera-frame depth reflected about the translation's
-    (``t``; an orthographic view's 2D points unchanged), the canonical shape's third axis
-    negated and the rotation conjugated by that reflection (``theta``'s first two
-    components negated), so that ``scale * x_canon @ rot.T + t`` is still ``x_cam``. Also
-    returns 1.0 where the view was mirrored, else 0.0."""
+    (N, 3), by default the basis' mean shape, than to the reference itself (``kind``
+    "procrustes": the best orthogonal map from one centred shape onto the other is then a
+    reflection, det of their cross-covariance < 0; comparing the two Procrustes residuals
+    says the same), or when its small tetrahedra take the chirality of the reference's
+    mirror image (``kind`` "tetrahedra": ``local_handedness_evidence`` < 0). With a tuple
+    of references, mirrored when the sum of their evidence of that kind is negative. The
+    mirror image: the camera-frame depth reflected about the translation's (``t``; an
+    orthographic view's 2D points unchanged), the canonical shape's third axis negated and
+    the rotation conjugated by that reflection (``theta``'s first two components negated),
+    so that ``scale * x_canon @ rot.T + t`` is still ``x_cam``. Also returns 1.0 where the
+    view was mirrored, else 0.0."""
     if reference is None:
         reference = model.mean_shape(net, params, class_mask)
     if isinstance(reference, tuple):
-        mirrored = sum(handedness_evidence(x_canon, r, class_mask) for r in reference) < 0
+        mirrored = sum(evidence(kind)(x_canon, r, class_mask) for r in reference) < 0
+    elif kind == "tetrahedra":
+        mirrored = local_handedness_evidence(x_canon, reference, class_mask) < 0
     else:
         mirrored = _nearer_mirror(x_canon, reference, class_mask)
     return mirror_if(mirrored, x_cam, t, x_canon, rot, theta)
@@ -520,7 +577,8 @@ def _handed(cfg, options, net, params, body, x_cam, t, x_canon, rot, theta, clas
                          theta)
     if options.handedness_reference == "body":  # the example and the mean shape
         reference = (reference, mean_shape_handed_as(net, params, class_mask, reference))
-    return one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference)
+    return one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference,
+                          options.handedness_evidence)
 
 
 @model.under_precision

@@ -81,14 +81,26 @@ def multiview(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"], v
 
 
 def handedness(x_canon: Float[Array, "B N 3"], mean_shape: Float[Array, "B N 3"],
-               class_mask: Float[Array, "B N"], margin: float = 0.0) -> Float[Array, ""]:
-    """Mean over examples of how far each canonical shape falls short of ``margin`` in
-    ``lift.handedness_evidence`` against the mean shape (held fixed): zero for a shape that
-    a proper rotation maps onto the mean shape better than a reflection does, by the margin;
-    positive for one nearer the mean shape's mirror image."""
-    evidence = jax.vmap(partial(lift.handedness_evidence, floor=1e-8))(
+               class_mask: Float[Array, "B N"], margin: float = 0.0,
+               kind: str = "procrustes") -> Float[Array, ""]:
+    """Mean over examples of how far each canonical shape falls short of ``margin`` in its
+    handedness evidence against the mean shape (held fixed; ``kind``: ``lift.evidence``'s
+    "procrustes", how much better a proper rotation than a reflection maps it onto the mean
+    shape, or "tetrahedra", how much its small tetrahedra keep the mean shape's chirality):
+    zero for a shape of the mean shape's handedness by the margin, positive for one nearer
+    the mean shape's mirror image."""
+    evidence = jax.vmap(partial(lift.evidence(kind), floor=1e-8))(
         x_canon, jax.lax.stop_gradient(mean_shape), class_mask)
     return jnp.mean(jax.nn.relu(margin - evidence))
+
+
+def views_mean(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"]
+               ) -> Float[Array, "N 3"]:
+    """Each point's mean canonical position over the examples whose class has it (held
+    fixed): the batch's typical shape, which the basis' mean shape (coefficients 0) need
+    not be."""
+    total = jnp.sum(x_canon * class_mask[..., None], 0)
+    return jax.lax.stop_gradient(total / jnp.maximum(jnp.sum(class_mask, 0), 1.0)[:, None])
 
 
 def supervised_problem(weight: float, projection_type: str) -> str:
@@ -113,6 +125,9 @@ def deformation(deform_sq: Float[Array, "B N"], class_mask: Float[Array, "B N"]
 
 
 NORMALIZATIONS = ("kp_total_count", "kp_count_per_image")
+# What the handedness term weighs each canonical shape against: the basis' mean shape or
+# the mean canonical shape of the batch's views (``views_mean``).
+HANDEDNESS_PROTOTYPES = ("basis_mean", "views_mean")
 # The weights that may ramp (``{term}_ramp``, ``w_{term}_final``).
 RAMPED_TERMS = ("canonicalization", "deformation", "handedness")
 
@@ -194,8 +209,16 @@ class LossConfig:
     w_handedness_final: float | None = None
     handedness_ramp: tuple[int, ...] = ()
     handedness_margin: float = 0.0
+    handedness_evidence: str = "procrustes"
+    handedness_prototype: str = "basis_mean"
 
     def __post_init__(self):
+        if self.handedness_evidence not in lift.HANDEDNESS_EVIDENCE:
+            raise ValueError(f"unknown handedness_evidence {self.handedness_evidence!r}; "
+                             f"known: {lift.HANDEDNESS_EVIDENCE}")
+        if self.handedness_prototype not in HANDEDNESS_PROTOTYPES:
+            raise ValueError(f"unknown handedness_prototype {self.handedness_prototype!r}; "
+                             f"known: {HANDEDNESS_PROTOTYPES}")
         if self.reprojection_normalization not in NORMALIZATIONS:
             raise ValueError(f"unknown reprojection_normalization "
                              f"{self.reprojection_normalization!r}; known: {NORMALIZATIONS}")
@@ -292,8 +315,13 @@ def make_loss_fn(model_cfg: model.ModelConfig, loss_cfg: LossConfig):
                 per_sample[:, model_cfg.n_rand_samples:])
             objective = objective + w_canon * extra["loss/reflection"]
         if loss_cfg.w_handedness or loss_cfg.w_handedness_final:
-            extra["loss/handedness"] = handedness(terms["x_canon"], terms["mean_shape"],
-                                                  batch["class_mask"], loss_cfg.handedness_margin)
+            reference = terms["mean_shape"]
+            if loss_cfg.handedness_prototype == "views_mean":
+                reference = jnp.broadcast_to(views_mean(terms["x_canon"], batch["class_mask"]),
+                                             reference.shape)
+            extra["loss/handedness"] = handedness(terms["x_canon"], reference,
+                                                  batch["class_mask"], loss_cfg.handedness_margin,
+                                                  loss_cfg.handedness_evidence)
             objective = objective + loss_cfg.handedness_weight(step) * extra["loss/handedness"]
         if loss_cfg.w_multiview:
             extra["loss/multiview"] = multiview(terms["x_canon"], batch["class_mask"],

@@ -81,6 +81,9 @@ _INFERENCE_HELP = {
                             "model's mean shape is the body's mirror image or not.",
     "handedness_body": "A file of one 3D example of the points, as --handedness_reference "
                        "takes one (the reference 'body').",
+    "handedness_evidence": "How --one_handedness weighs a view against the reference: "
+                           "'procrustes' (the whole shape) or 'tetrahedra' (the chirality of "
+                           "each point's corner with its three nearest points).",
     "replace_keypoints_with_input": "The 3D output's x, y at visible points are the input "
                                     "itself (--noreplace_keypoints_with_input: the "
                                     "reprojection).",

@@ -88,7 +88,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         w_supervised=0.0, huber_scaling=0.01, reprojection_normalization="kp_total_count",
         squared_reprojection_loss=False, w_multiview=0.0, multiview_views=3,
         w_handedness=0.0, w_handedness_final=ml_collections.config_dict.placeholder(float),
-        handedness_ramp=(), handedness_margin=0.0,
+        handedness_ramp=(), handedness_margin=0.0, handedness_evidence="procrustes",
+        handedness_prototype="basis_mean",
     )
     c.optim = dict(
         optimizer="sgd", lr=1e-3, momentum=0.9, weight_decay=5e-4,
