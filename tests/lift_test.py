@@ -490,3 +490,41 @@ def test_a_body_without_one_handedness_gives_the_whole_model_one_mirror_decision
     plain = lifted(lift.InferenceConfig(one_handedness=False))
     for name in ("shape_3d", "shape_canonical", "rotation", "handedness_flipped"):
         np.testing.assert_array_equal(plain[name], off[name], err_msg=name)
+
+
+def test_one_handedness_on_tetrahedra_mirrors_the_views_whose_corners_are_mirrored():
+    """``handedness_evidence="tetrahedra"``: a view is mirrored when its small tetrahedra
+    (each point with its three nearest in the mean shape) take the chirality of the mean
+    shape's mirror image: numpy's determinants decide independently."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    variables, _, _ = _basis_views(CFG)
+    mean = _canonical_numpy(variables, np.zeros(CFG.shape_basis_size))
+    rng = np.random.default_rng(6)
+    n = 8
+    shapes = mean + 0.01 * np.abs(mean).mean() * rng.normal(size=(n, *mean.shape))
+    shapes[n // 2:] *= np.array([1.0, 1.0, -1.0])
+    rots = Rotation.random(n, random_state=7)
+    t = np.zeros(3)
+    x_cam = np.einsum("bij,bnj->bni", rots.as_matrix(), shapes)
+    corners = cKDTree(mean).query(mean, k=4)[1]
+
+    def chirality(y):
+        edges = y[corners[:, 1:]] - y[corners[:, :1]]
+        return np.linalg.det(edges) / np.prod(np.linalg.norm(edges, axis=-1), -1)
+
+    want = np.array([np.sum(chirality(mean) * chirality(x)) < 0 for x in shapes])
+    assert want.tolist() == [False] * (n // 2) + [True] * (n // 2)
+    fn = jax.jit(jax.vmap(partial(lift.one_handedness, net := model.make_network(CFG),
+                                  variables["params"], kind="tetrahedra"),
+                          in_axes=(0, None, 0, 0, 0, None)))
+    got = fn(jnp.asarray(x_cam, jnp.float32), jnp.asarray(t, jnp.float32),
+             *(jnp.asarray(a, jnp.float32) for a in (shapes, rots.as_matrix(),
+                                                      rots.as_rotvec())),
+             jnp.ones(CFG.n_keypoints))
+    assert net is not None
+    np.testing.assert_array_equal(np.asarray(got[4]), want.astype(np.float32))
+    with pytest.raises(ValueError, match=r"handedness_evidence='volume' \(must be one of "
+                                         r"'procrustes', 'tetrahedra'\)"):
+        lift.InferenceConfig(handedness_evidence="volume")

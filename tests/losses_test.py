@@ -174,3 +174,61 @@ def test_handedness_term_has_finite_gradients_at_the_mean_shape_itself():
     g_mean = jax.grad(lambda m: losses.handedness(x, jnp.broadcast_to(m, x.shape),
                                                   jnp.ones((2, 7)), 0.1))(mean)
     np.testing.assert_array_equal(np.asarray(g_mean), 0.0)
+
+
+def _tetrahedra_evidence_numpy(x, ref, mask):
+    """Independent of ``lift.local_handedness_evidence``: scipy's k-d tree finds each class
+    point's three nearest class points in ``ref``; numpy's determinants of the corners."""
+    from scipy.spatial import cKDTree
+
+    inside = np.flatnonzero(mask > 0)
+    _, near = cKDTree(ref[inside]).query(ref[inside], k=4)  # itself first
+    num = den = 0.0
+    for corner in inside[near]:
+        def chirality(y):
+            edges = y[corner[1:]] - y[corner[0]]
+            return np.linalg.det(edges) / np.prod(np.linalg.norm(edges, axis=1))
+        num += chirality(ref) * chirality(x)
+        den += abs(chirality(ref))
+    return num / den
+
+
+def test_handedness_term_on_tetrahedra_is_the_hinge_on_their_chirality():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    mean = rng.normal(size=(11, 3)) * [1.0, 0.7, 0.4]
+    mask = np.ones((6, 11))
+    mask[:, 9:] = 0.0  # two points outside the class: in no tetrahedron
+    rots = Rotation.random(6, random_state=2).as_matrix()
+    shapes = 1.7 * np.einsum("mij,nj->mni", rots, mean) + 0.1 * rng.normal(size=(6, 11, 3))
+    shapes[3:] *= np.array([1.0, 1.0, -1.0])  # three mirror images
+    evidence = np.array([_tetrahedra_evidence_numpy(x, mean, m) for x, m in zip(shapes, mask)])
+    assert np.all(evidence[:3] > 0.2) and np.all(evidence[3:] < -0.2)
+    # The points outside the class do not count: moving them changes nothing.
+    moved = shapes.copy()
+    moved[:, 9:] += 5.0
+    for margin in (0.0, 0.5):
+        for x in (shapes, moved):
+            got = losses.handedness(jnp.asarray(x, jnp.float32),
+                                    jnp.broadcast_to(jnp.asarray(mean, jnp.float32), x.shape),
+                                    jnp.asarray(mask), margin, "tetrahedra")
+            np.testing.assert_allclose(got, np.mean(np.maximum(margin - evidence, 0.0)),
+                                       rtol=1e-4)
+
+
+def test_views_mean_is_each_point_s_mean_over_the_examples_that_have_it():
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(4, 6, 3))
+    mask = np.ones((4, 6))
+    mask[:2, 4:] = 0.0  # the first two examples' class lacks the last two points
+    got = np.asarray(losses.views_mean(jnp.asarray(x), jnp.asarray(mask)))
+    np.testing.assert_allclose(got[:4], x[:, :4].mean(0), rtol=1e-5)
+    np.testing.assert_allclose(got[4:], x[2:, 4:].mean(0), rtol=1e-5)
+
+
+@pytest.mark.parametrize("field, value", [("handedness_evidence", "chirality"),
+                                          ("handedness_prototype", "median")])
+def test_an_unknown_handedness_setting_is_refused_in_one_line(field, value):
+    with pytest.raises(ValueError, match=rf"^unknown {field} '{value}'; known: \("):
+        losses.LossConfig(**{field: value})

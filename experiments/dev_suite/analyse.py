@@ -111,6 +111,12 @@ the more self-consistent the nearer the re-lifted depths are to its own turned o
 share of views whose truth is more consistent than the prediction, and the MPJPE when each
 view takes its most consistent candidate, beside the oracle's choice among the same ones.
 
+``decide --runs=DIR,DIR,...``: for trained runs, the test views' ``mpjpe_global`` once
+each view is given the handedness that its canonical shape or its output (the input's x, y
+and the model's depth) shows against a prototype (the basis' mean shape, or the mean
+canonical shape of up to 2,000 training views), by the whole-shape or the tetrahedra
+evidence (``lift.evidence``): which per-view decision gives a user one handedness.
+
 ``ensemble --runs=DIR,DIR,...``: runs of one dataset (several seeds): each run's test MPJPE,
 then that of the mean of the runs' predictions, each view's depth sign matched to the first
 run's: whether their errors are independent (the mean is better) or shared (it is not).
@@ -755,6 +761,46 @@ def reference(run: str) -> list[float]:
             kind]
 
 
+DECIDE_PROTOTYPES = ("basis' mean shape", "training views' mean")
+DECIDE_SHAPES = ("canonical shape", "output")
+DECIDE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global, the model's own views"] + [
+    f"per view: {s} vs {p}, {e}" for p in DECIDE_PROTOTYPES for s in DECIDE_SHAPES
+    for e in lift_lib.HANDEDNESS_EVIDENCE]
+
+
+def decide(run: str) -> list[float]:
+    """``mpjpe_global`` of the test views after each is given the handedness its evidence
+    (``lift.evidence``: "procrustes" or "tetrahedra") favours against a prototype (the
+    basis' mean shape, or the mean canonical shape of up to ``OBJECTIVE_VIEWS`` training
+    views as the model lifts them), read from its canonical shape or from its output (the
+    input's x, y with the model's depth, what a user gets); first the paper's error and the
+    model's own views' ``mpjpe_global``."""
+    import jax
+    import jax.numpy as jnp
+
+    test, model = _test_split_and_model(run)
+    own = {"one_handedness": False, "handedness_reference": "mean_shape"}
+    rec = c3dpo_jax.reconstruct(model, test.kp, test.vis, **own)
+    views = _training_split_and_views(run)[1]
+    trained = c3dpo_jax.reconstruct(model, views.kp, views.vis, **own)
+    net = model_lib.make_network(model.config)
+    ones = jnp.ones(model.config.n_keypoints)
+    prototypes = (model_lib.mean_shape(net, model.variables["params"], ones),
+                  jnp.asarray(np.mean(trained.shape_canonical, 0)))
+    per = _per_view(rec.shape_3d, test)
+    orig, flip = per["mpjpe_orig"], per["mpjpe_flip"]
+    out = [float(np.mean(np.minimum(orig, flip))), float(min(orig.mean(), flip.mean()))]
+    for proto in prototypes:
+        for shapes in (rec.shape_canonical, rec.shape_3d):
+            for kind in lift_lib.HANDEDNESS_EVIDENCE:
+                evidence = jax.vmap(lift_lib.evidence(kind), (0, None, None))(
+                    jnp.asarray(shapes, jnp.float32), proto, ones)
+                mirrored = np.asarray(evidence) < 0
+                a, b = np.where(mirrored, flip, orig), np.where(mirrored, orig, flip)
+                out.append(float(min(a.mean(), b.mean())))
+    return out
+
+
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
 _H36M_PARENTS = (-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
 PARENTS = {
@@ -1004,6 +1050,7 @@ def _run_tables() -> dict:
         "relift": (RELIFT_COLUMNS, relift),
         "mirror": (MIRROR_COLUMNS, mirror_cost),
         "reference": (REFERENCE_COLUMNS, reference),
+        "decide": (DECIDE_COLUMNS, decide),
     }
 
 
