@@ -13,7 +13,7 @@ from absl import logging
 
 from c3dpo_jax import checkpoint, lift, model, run_config, run_records, validation
 from c3dpo_jax.data import load_splits
-from c3dpo_jax.inference import evaluate_baselines, evaluate_split
+from c3dpo_jax.inference import evaluate_baselines, evaluate_split, with_views_mean
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.resolve import resolve_from_data
 from c3dpo_jax.train import RunSpec
@@ -61,6 +61,8 @@ def _inference_options(options: InferenceConfig, saved: dict | None) -> dict:
         return {}
     now = json.loads(json.dumps(options.to_dict()))  # tuples as the saved JSON lists
     before = {**json.loads(json.dumps(InferenceConfig().to_dict())), **lift.saved_options(saved)}
+    if options.handedness_reference == "views_mean":  # rows of the step scored, not options
+        now.pop("handedness_body")
     return {k: v for k, v in now.items() if before[k] != v}
 
 
@@ -90,6 +92,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
     validation.check_data(test_data, model_cfg, "test")
+    options = with_views_mean(options, variables, train_data, model_cfg)  # the step's own
     final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     before = run_records.read_results(workdir)

@@ -13,6 +13,7 @@ compiled function serves every batch of that size and the padding rows are real 
 never NaN-prone zeros.
 """
 
+import dataclasses
 from functools import partial
 
 import jax
@@ -21,6 +22,10 @@ import numpy as np
 from c3dpo_jax import baselines, evaluation, lift, model
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.lift import InferenceConfig
+
+# training_views_mean: the training views it averages (the analysis that chose the reference
+# used 2,000: experiments/dev_suite/handedness.md, "The decision at the output").
+VIEWS_MEAN_VIEWS = 2000
 
 
 def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics, body,
@@ -66,9 +71,36 @@ def predict_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
         out = _forward_batch(variables, inputs["kp"][idx], inputs["vis"][idx],
                              inputs["class_mask"][idx],
                              None if "intrinsics" not in inputs else inputs["intrinsics"][idx],
-                             body, cfg=model_cfg, options=options)
+                             body, cfg=model_cfg, options=lift.static_options(options))
         outputs.append(jax.device_get(out))
     return {k: np.concatenate([o[k] for o in outputs])[:m] for k in outputs[0]}
+
+
+def training_views_mean(variables, data: KeypointData, model_cfg: model.ModelConfig,
+                        options: InferenceConfig, max_views: int = VIEWS_MEAN_VIEWS,
+                        batch_size: int = 1024) -> tuple:
+    """The rows of ``handedness_reference="views_mean"``: each point's mean canonical shape
+    over up to ``max_views`` views of ``data`` (the training split; a fixed random choice)
+    as the model lifts them with ``options``, each with its own handedness, over the views
+    whose class has the point."""
+    own = dataclasses.replace(options, one_handedness=False, handedness_reference="mean_shape",
+                              handedness_body=())
+    idx = np.sort(np.random.default_rng(0).permutation(len(data))[:max_views])
+    views = data.subset(idx)
+    pred = predict_split(variables, views, model_cfg, own, batch_size)
+    mask = views.model_inputs()["class_mask"][..., None]
+    rows = (pred["shape_canonical"] * mask).sum(0) / np.maximum(mask.sum(0), 1.0)
+    return tuple(tuple(float(v) for v in row) for row in rows)
+
+
+def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
+                    model_cfg: model.ModelConfig) -> InferenceConfig:
+    """``options`` with the training views' mean rows of ``variables`` filled in, when its
+    reference is "views_mean" (``training_views_mean`` of ``data``); else as they are."""
+    if options.handedness_reference != "views_mean":
+        return options
+    return dataclasses.replace(options, handedness_body=training_views_mean(
+        variables, data, model_cfg, options))
 
 
 def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig,

@@ -41,6 +41,9 @@ TURN_RANGE_SLACK = 1e-3
 # What the views' handedness can be taken from, with the number of points of the body's
 # joint order: the basis' mean shape (None) or a built-in body (``bodies.HUMAN_BODIES``).
 HANDEDNESS_REFERENCES = {"mean_shape": None, **bodies.HUMAN_BODIES}
+# The references whose points are rows of ``handedness_body``: a user's 3D example, and the
+# training views' mean canonical shape (``resolve.views_mean``).
+ROWS_REFERENCES = ("body", "views_mean")
 # The ways of weighing a shape's handedness against a reference (``evidence``).
 HANDEDNESS_EVIDENCE = ("procrustes", "tetrahedra")
 # Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
@@ -88,17 +91,23 @@ class InferenceConfig:
         out mirrored still gives the body's), or "body", the body in ``handedness_body``,
         with which each view takes the handedness that the body and the basis' mean shape
         given the body's handedness favour together (``mean_shape_handed_as``,
-        ``handedness_evidence``). A training config may also hold "auto" (a body whose
-        projections fit the training views, else the mean shape;
-        ``resolve.resolve_handedness``) or a body file (``bodies.BODY_FILE_SUFFIXES``),
-        which are resolved before training.
+        ``handedness_evidence``), or "views_mean", the mean canonical shape of the training
+        views as the model lifts them, its rows in ``handedness_body`` (training fills them,
+        ``resolve.views_mean``; without ``one_handedness`` the views stay as they are). A
+        training config may also hold "auto" (a body whose projections fit the training
+        views, else the mean shape; ``resolve.resolve_handedness``) or a body
+        file (``bodies.BODY_FILE_SUFFIXES``), which are resolved before training.
       handedness_body: with "body": one 3D example of the points, N rows of (x, y, z) in
         the model's order, in any position, orientation and scale (a frame of motion
-        capture, a rig's rest pose).
+        capture, a rig's rest pose); with "views_mean", that mean shape's rows.
       handedness_evidence: how ``one_handedness`` weighs a view's handedness against the
         reference: "procrustes" (the whole shape: is a proper rotation or a reflection the
         better map onto it) or "tetrahedra" (its small parts: do the tetrahedra of each
         point and its three nearest keep their chirality; ``local_handedness_evidence``).
+      handedness_from_output: ``one_handedness`` weighs the output (the input's x, y at
+        the visible points, the model's depth: what a view is scored by and a user gets)
+        instead of the canonical shape; a view whose canonical shape has the reference's
+        handedness can give an output whose depth fits its mirror image better.
       replace_keypoints_with_input: the 3D output's x, y at visible points are the input
         itself (as the release), else the reprojection.
     """
@@ -111,6 +120,7 @@ class InferenceConfig:
     handedness_reference: str = "mean_shape"
     handedness_body: tuple = ()
     handedness_evidence: str = "procrustes"
+    handedness_from_output: bool = False
     replace_keypoints_with_input: bool = True
 
     def __post_init__(self):
@@ -176,13 +186,14 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
         found.append(f"turn_span={v['turn_span']!r} (must be one of "
                      + ", ".join(repr(s) for s in TURN_SPANS) + ")")
     found += [f"{name}={v[name]!r} (must be True or False)"
-              for name in ("one_handedness", "replace_keypoints_with_input")
+              for name in ("one_handedness", "handedness_from_output",
+                           "replace_keypoints_with_input")
               if not isinstance(v[name], bool | np.bool_)]
     if v["handedness_evidence"] not in HANDEDNESS_EVIDENCE:
         found.append(f"handedness_evidence={v['handedness_evidence']!r} (must be one of "
                      + ", ".join(repr(k) for k in HANDEDNESS_EVIDENCE) + ")")
     reference, body = v["handedness_reference"], v["handedness_body"]
-    known = (*HANDEDNESS_REFERENCES, "body", "auto")
+    known = (*HANDEDNESS_REFERENCES, *ROWS_REFERENCES, "auto")
     if not (isinstance(reference, str) and (reference in known or bodies.is_body_file(reference))):
         found.append(f"handedness_reference={reference!r} (must be one of "
                      + ", ".join(repr(k) for k in known) + ", or a body file ("
@@ -192,9 +203,9 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
     elif reference == "body" and not len(body):
         found.append("handedness_body is empty: give its N rows of (x, y, z), or name a body "
                      f"file ({', '.join(bodies.BODY_FILE_SUFFIXES)})")
-    elif len(body) and reference != "body":
+    elif len(body) and reference not in ROWS_REFERENCES:
         found.append(f"handedness_body is given but handedness_reference is {reference!r}, "
-                     "not 'body'")
+                     "not 'body' or 'views_mean'")
     return found
 
 
@@ -227,7 +238,8 @@ def problems(options: InferenceConfig, model_cfg: ModelConfig, resolved: bool = 
         found.append(f"handedness_reference={reference!r} (a body of "
                      f"{HANDEDNESS_REFERENCES[reference]} points in its joint order; the model "
                      f"has {n})")
-    elif reference == "body" and (why := bodies.body_problem(options.handedness_body, n)):
+    elif (reference == "body" or len(options.handedness_body)) and (
+            why := bodies.body_problem(options.handedness_body, n)):
         found.append(f"handedness_body ({why})")
     return found
 
@@ -309,7 +321,7 @@ def reference_body(reference, body=()) -> np.ndarray | None:
         return np.asarray(reference, np.float64)
     if bodies.is_body_file(reference):
         return bodies.read_body(reference)
-    if reference == "body":
+    if reference in ROWS_REFERENCES:
         return np.asarray(body, np.float64)
     if reference == "auto":
         raise ValueError("handedness_reference='auto' means 'from the training data' and was "
@@ -322,8 +334,22 @@ def reference_body(reference, body=()) -> np.ndarray | None:
 
 def options_body(options: InferenceConfig) -> np.ndarray | None:
     """``forward_eval``'s ``body`` for ``options``, float32 (None: none is used)."""
+    if options.handedness_reference == "views_mean" and not len(options.handedness_body):
+        raise ValueError("handedness_reference='views_mean' has no rows in handedness_body: "
+                         "the training views' mean canonical shape is written when a run "
+                         "ends (inference.training_views_mean); finish the run, or give "
+                         "handedness_reference='mean_shape' or a body")
     body = reference_body(options.handedness_reference, options.handedness_body)
     return None if body is None else np.asarray(body, np.float32)
+
+
+def static_options(options: InferenceConfig) -> InferenceConfig:
+    """``options`` as a compiled function's static argument: without the training views'
+    mean rows, which reach it as the ``body`` array (so that new rows, at each evaluation
+    of a run, do not compile it again)."""
+    if options.handedness_reference != "views_mean":
+        return options
+    return dataclasses.replace(options, handedness_body=())
 
 
 def turn_angles(options: InferenceConfig, cfg: ModelConfig) -> Float[Array, " A"]:
@@ -432,7 +458,7 @@ def evidence(kind: str):
 
 
 def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference=None,
-                   kind="procrustes"):
+                   kind="procrustes", judged=None):
     """``(x_cam, x_canon, rot, theta)`` of one view, mirrored when its canonical shape
     ``x_canon`` is nearer, up to a proper rotation, to the mirror image of ``reference``
     (N, 3), by default the basis' mean shape, than to the reference itself (``kind``
@@ -440,20 +466,22 @@ def one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, refer
     reflection, det of their cross-covariance < 0; comparing the two Procrustes residuals
     says the same), or when its small tetrahedra take the chirality of the reference's
     mirror image (``kind`` "tetrahedra": ``local_handedness_evidence`` < 0). With a tuple
-    of references, mirrored when the sum of their evidence of that kind is negative. The
-    mirror image: the camera-frame depth reflected about the translation's (``t``; an
-    orthographic view's 2D points unchanged), the canonical shape's third axis negated and
-    the rotation conjugated by that reflection (``theta``'s first two components negated),
-    so that ``scale * x_canon @ rot.T + t`` is still ``x_cam``. Also returns 1.0 where the
-    view was mirrored, else 0.0."""
+    of references, mirrored when the sum of their evidence of that kind is negative.
+    ``judged``: the shape (N, 3) weighed instead of ``x_canon`` (the output's, with
+    ``handedness_from_output``). The mirror image: the camera-frame depth reflected about
+    the translation's (``t``; an orthographic view's 2D points unchanged), the canonical
+    shape's third axis negated and the rotation conjugated by that reflection (``theta``'s
+    first two components negated), so that ``scale * x_canon @ rot.T + t`` is still
+    ``x_cam``. Also returns 1.0 where the view was mirrored, else 0.0."""
     if reference is None:
         reference = model.mean_shape(net, params, class_mask)
+    shape = x_canon if judged is None else judged
     if isinstance(reference, tuple):
-        mirrored = sum(evidence(kind)(x_canon, r, class_mask) for r in reference) < 0
+        mirrored = sum(evidence(kind)(shape, r, class_mask) for r in reference) < 0
     elif kind == "tetrahedra":
-        mirrored = local_handedness_evidence(x_canon, reference, class_mask) < 0
+        mirrored = local_handedness_evidence(shape, reference, class_mask) < 0
     else:
-        mirrored = _nearer_mirror(x_canon, reference, class_mask)
+        mirrored = _nearer_mirror(shape, reference, class_mask)
     return mirror_if(mirrored, x_cam, t, x_canon, rot, theta)
 
 
@@ -557,12 +585,14 @@ def _turned_depth(cfg, options, net, variables, kp_norm, vis, class_mask, x_cam)
     return median + (x_cam[:, 2] - centred)
 
 
-def _handed(cfg, options, net, params, body, x_cam, t, x_canon, rot, theta, class_mask):
+def _handed(cfg, options, net, params, body, x_cam, t, x_canon, rot, theta, class_mask,
+            kp_norm, vis):
     """The view given the handedness that ``options`` ask for, with the flag of
     ``mirror_if``: view by view (``one_handedness``), or, without it and with a body
     reference, the whole model's (every view mirrored when the basis' mean shape is nearer,
     up to a proper rotation, to the body's mirror image than to the body); the view as it
-    is, flag 0, when they ask for none."""
+    is, flag 0, when they ask for none. ``kp_norm``, ``vis``: the view's normalised input,
+    the output's x, y at the visible points (``handedness_from_output``)."""
     reference = None  # the mean shape
     if options.handedness_reference != "mean_shape":
         if body is None:
@@ -570,15 +600,18 @@ def _handed(cfg, options, net, params, body, x_cam, t, x_canon, rot, theta, clas
                              "its body: pass lift.options_body(options)")
         reference = jnp.asarray(body)
     if not options.one_handedness:
-        if reference is None:
+        if reference is None or options.handedness_reference == "views_mean":
             return x_cam, x_canon, rot, theta, jnp.zeros((), x_cam.dtype)
         mean = model.mean_shape(net, params, class_mask)
         return mirror_if(_nearer_mirror(mean, reference, class_mask), x_cam, t, x_canon, rot,
                          theta)
     if options.handedness_reference == "body":  # the example and the mean shape
         reference = (reference, mean_shape_handed_as(net, params, class_mask, reference))
+    judged = None
+    if options.handedness_from_output:
+        judged = x_cam.at[:, :2].set(jnp.where(vis[:, None] > 0, kp_norm, x_cam[:, :2]))
     return one_handedness(net, params, x_cam, t, x_canon, rot, theta, class_mask, reference,
-                          options.handedness_evidence)
+                          options.handedness_evidence, judged)
 
 
 @model.under_precision
@@ -610,7 +643,8 @@ def forward_eval(
         x_cam = x_cam.at[:, 2].set(_turned_depth(cfg, options, net, variables, kp_norm, vis,
                                                  class_mask, x_cam))
     x_cam, x_canon, rot, theta, flipped = _handed(cfg, options, net, params, body, x_cam, t,
-                                                  x_canon, rot, phi_out["theta"], class_mask)
+                                                  x_canon, rot, phi_out["theta"], class_mask,
+                                                  kp_norm, vis)
     proj, depth, dist_sq = model.reproject(cfg, x_cam, kp_norm, vis)
     reproj_image = geometry.unnormalise_keypoints(proj, centre, scale)
     image_xy = reproj_image

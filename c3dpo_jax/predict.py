@@ -84,6 +84,8 @@ _INFERENCE_HELP = {
     "handedness_evidence": "How --one_handedness weighs a view against the reference: "
                            "'procrustes' (the whole shape) or 'tetrahedra' (the chirality of "
                            "each point's corner with its three nearest points).",
+    "handedness_from_output": "--one_handedness weighs each view's output (the input's x, y "
+                              "with the model's depth) instead of its canonical shape.",
     "replace_keypoints_with_input": "The 3D output's x, y at visible points are the input "
                                     "itself (--noreplace_keypoints_with_input: the "
                                     "reprojection).",

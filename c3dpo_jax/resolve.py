@@ -23,6 +23,9 @@ BODY_FIT_2D = 0.6  # resolve_handedness: a body's fit below it names the views' 
 BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
 # Evidence: experiments/dev_suite/data_variants.md, "People at different distances".
 ALIKE_SIZE_RATIO = 1.18  # resolve_keypoint_scaling: views' size ratio above it, per view
+# How "views_mean" weighs a view, where a saved config predates the settings: each output by
+# its tetrahedra (evidence: experiments/dev_suite/handedness.md, "The decision at the output").
+VIEWS_MEAN_SETTINGS = {"handedness_evidence": "tetrahedra", "handedness_from_output": True}
 
 
 def resolve_input_scale(config, train_data: KeypointData, saved: dict | None = None):
@@ -61,12 +64,13 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     saved config holds, else the built-in body (``bodies.HUMAN_BODIES``) of the model's
     number of points whose projections fit the training views best, if they fit it
     (``body_fit_2d`` below ``BODY_FIT_2D``: points in its joint order), with
-    ``one_handedness`` on (the body decides
-    each view: a model's own views can split even when trained to one handedness; evidence:
-    experiments/dev_suite/handedness.md), else "mean_shape" (and ``one_handedness`` as it
-    is). A body file (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with
-    the reference "body" and ``one_handedness`` on (a saved config's body, when it has one:
-    a resumed run keeps the body it started with). Other values are returned unchanged."""
+    ``one_handedness`` on (the body decides each view: a model's own views can split even
+    when trained to one handedness; evidence: experiments/dev_suite/handedness.md), else
+    "mean_shape" (and ``one_handedness`` as it is; a saved "views_mean" keeps how its views
+    were weighed, ``VIEWS_MEAN_SETTINGS``). A body file (``bodies.BODY_FILE_SUFFIXES``) is read into
+    ``handedness_body`` with the reference "body" and ``one_handedness`` on (a saved
+    config's body, when it has one: a resumed run keeps the body it started with). Other
+    values are returned unchanged."""
     reference = config.inference.handedness_reference
     before = lift.saved_options(saved or {})
     if bodies.is_body_file(reference):
@@ -89,6 +93,9 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
         # one_handedness=True given now (e.g. --mode=eval) holds beside the saved reference
         config.inference.one_handedness = (bool(before.get("one_handedness"))
                                            or bool(config.inference.one_handedness))
+        if before["handedness_reference"] == "views_mean":  # and how it was weighed
+            for key in VIEWS_MEAN_SETTINGS:
+                config.inference[key] = before.get(key, VIEWS_MEAN_SETTINGS[key])
         return config
     config.inference.handedness_reference = "mean_shape"
     if config.model.projection_type != "orthographic":

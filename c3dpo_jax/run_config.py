@@ -103,6 +103,15 @@ def save_config(workdir: str, config: dict[str, Any]) -> None:
     checkpoint.write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
 
 
+def save_inference_rows(workdir: str, rows) -> None:
+    """Writes ``rows`` (N rows of x, y, z: the training views' mean canonical shape of the
+    run's last evaluation) into config.json's ``inference.handedness_body``, which loading
+    the model reads (``handedness_reference="views_mean"``)."""
+    config = load_config(workdir)
+    config["inference"]["handedness_body"] = [list(row) for row in rows]
+    save_config(workdir, config)
+
+
 def _git(*args: str) -> str | None:
     """Output of ``git ARGS`` run in this package's directory, or None (no git, no repo)."""
     try:

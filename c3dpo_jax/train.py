@@ -51,7 +51,7 @@ from c3dpo_jax import (
 )
 from c3dpo_jax.data import KeypointData, load_splits
 from c3dpo_jax.data.dataset import fingerprint
-from c3dpo_jax.inference import evaluate_baselines, evaluate_split
+from c3dpo_jax.inference import evaluate_baselines, evaluate_split, with_views_mean
 from c3dpo_jax.lift import InferenceConfig
 from c3dpo_jax.losses import RAMPED_TERMS, LossConfig, make_loss_fn
 from c3dpo_jax.reconstruct import load, split_path
@@ -358,8 +358,11 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     chunk, state, data = _compiled_chunk(config, spec, train_data, state)
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
+    used = [options]  # the options of the latest evaluation (the views' mean filled in)
+
     def evaluate(state, step):
-        res = evaluate_split(state.variables, test_data, spec.model, options, protocol, eval_bs)
+        used[0] = with_views_mean(options, state.variables, train_data, spec.model)
+        res = evaluate_split(state.variables, test_data, spec.model, used[0], protocol, eval_bs)
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.
@@ -422,6 +425,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         writer.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
+    if used[0].handedness_reference == "views_mean":  # what inference of the model reads
+        run_config.save_inference_rows(workdir, used[0].handedness_body)
     results = {"history": history, "final": final,
                "baselines": evaluate_baselines(train_data, test_data, protocol)}
     run_records.write_results(workdir, results)

@@ -251,3 +251,53 @@ def test_c3dpo_predict_takes_a_body_file(tmp_path):
     np.testing.assert_allclose(got.shape_3d, want.shape_3d, atol=1e-5)
     own = reconstruct(params, kp, np.ones((4, K)))
     assert not np.allclose(got.shape_canonical, own.shape_canonical, atol=1e-3)  # mirrored
+
+
+def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
+    """``handedness_reference="views_mean"`` (tetrahedra, weighed at the output): the run
+    evaluates with the rows of each evaluation's model and writes the last ones into
+    config.json: the mean canonical shape of the training views (numpy, from the
+    model's own predictions), which ``load`` gives back, ``reconstruct`` uses and
+    ``--mode=eval`` recomputes for the step it scores, with the same scores."""
+    import c3dpo_jax
+    from c3dpo_jax import evaluate_workdir, inference
+    from c3dpo_jax.data import load_splits
+
+    c = default.apply_variants(default.get_config(), "smoke")
+    c.model.n_keypoints = c.data.synthetic.n_keypoints = 8
+    c.model.shape_basis_size = 3
+    c.inference.update(handedness_reference="views_mean", one_handedness=True,
+                       **resolve.VIEWS_MEAN_SETTINGS)
+    c.train.ckpt_every, c.train.progress_bar = 5, False
+    c.train.num_steps = 5
+    workdir = str(tmp_path / "run")
+    out = train.train_and_evaluate(c, workdir)
+    params = c3dpo_jax.load(workdir)
+    got = params.inference
+    assert (got.handedness_reference, got.one_handedness, got.handedness_evidence,
+            got.handedness_from_output) == ("views_mean", True, "tetrahedra", True)
+    train_data, _ = load_splits(c.data)
+    idx = np.sort(np.random.default_rng(0).permutation(len(train_data))[
+        :inference.VIEWS_MEAN_VIEWS])
+    views = train_data.subset(idx)
+    own = reconstruct(params, views.kp, views.vis, one_handedness=False,
+                      handedness_reference="mean_shape")
+    np.testing.assert_allclose(np.asarray(got.handedness_body),
+                               own.shape_canonical.mean(0), rtol=1e-4, atol=1e-5)
+    rec = reconstruct(params, views.kp, views.vis)
+    # Views mirrored exactly where their output's tetrahedra reverse the rows' chirality.
+    output = np.concatenate([rec.shape_3d[..., :2], own.shape_3d[..., 2:]], -1)
+    evidence = jax.vmap(lift.local_handedness_evidence, (0, None, None))(
+        jnp.asarray(output, jnp.float32), jnp.asarray(got.handedness_body, jnp.float32),
+        jnp.ones(8))
+    flipped = np.asarray(evidence) < 0
+    assert 0 < flipped.mean() < 1  # the 5-step model's outputs are split (46% here)
+    def centred_depth(r):
+        return r.shape_3d[..., 2] - r.shape_3d[..., 2].mean(1, keepdims=True)
+
+    np.testing.assert_allclose(centred_depth(rec), np.where(flipped[:, None], -1.0, 1.0)
+                               * centred_depth(own), atol=1e-4)
+    scored = evaluate_workdir.evaluate_checkpoint(c, workdir, save=False)["final"]
+    for key in ("mpjpe", "mpjpe_global", "mpjpe_orig", "mirrored"):
+        np.testing.assert_allclose(scored[key], out["final"][key], rtol=1e-5)
+    assert "inference" not in scored  # the rows are not an option that differs

@@ -416,7 +416,8 @@ def test_an_inference_config_goes_through_json_and_reads_a_model_section():
     again = lift.InferenceConfig.from_dict(json.loads(json.dumps(options.to_dict())))
     assert again == options and hash(again) == hash(options)
     # every field but those added after the move had an old name in the model section
-    assert set(model.MOVED_TO_INFERENCE.values()) == set(lift.FIELDS) - {"handedness_evidence"}
+    assert set(model.MOVED_TO_INFERENCE.values()) == set(lift.FIELDS) - {
+        "handedness_evidence", "handedness_from_output"}
     saved = {"model": {**CFG.to_dict(), "test_time_turns": 3, "test_time_refine_iters": 20,
                        "replace_keypoints_with_input": False}}
     assert lift.saved_options(saved) == {"turns": 3, "refine_iters": 20,

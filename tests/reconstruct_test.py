@@ -221,7 +221,7 @@ def test_a_body_reference_turns_one_handedness_on_and_is_checked(params, monkeyp
              r"model has 7\)"),
             (p17, kp, vis, {"handedness_reference": "smpl"},
              r"^handedness_reference='smpl' \(must be one of 'mean_shape', 'h36m', 'coco', "
-             r"'body', 'auto', or a body file"),
+             r"'body', 'views_mean', 'auto', or a body file"),
             (p17, kp, vis, {"handedness_reference": "auto"},
              r"^handedness_reference='auto' \(a training setting, resolved from the training "
              r"views")):

@@ -132,6 +132,16 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
         got = resolve.resolve_handedness(c2, data).inference
         assert (got.handedness_reference, got.one_handedness) == (
             "mean_shape", False)
+    # A saved "views_mean" (a run trained with it) keeps how its views were weighed, and
+    # takes VIEWS_MEAN_SETTINGS where the saved config predates them.
+    for saved, want in (({"handedness_reference": "views_mean", "one_handedness": True,
+                          "handedness_evidence": "procrustes", "handedness_from_output": False},
+                         ("procrustes", False)),
+                        ({"handedness_reference": "views_mean", "one_handedness": True},
+                         ("tetrahedra", True))):
+        got = resolve.resolve_handedness(c, shuffled, {"inference": saved}).inference
+        assert (got.handedness_reference, got.one_handedness, got.handedness_evidence,
+                got.handedness_from_output) == ("views_mean", True, *want)
     for saved in ({"inference": {"handedness_reference": "mean_shape", "one_handedness": True}},
                   {"model": {"test_time_handedness_reference": "mean_shape",
                              "test_time_one_handedness": True}}):

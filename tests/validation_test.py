@@ -297,7 +297,7 @@ def test_a_body_reference_needs_its_joint_count_and_an_orthographic_model():
     c.inference.handedness_reference = "h63m"
     assert validation.config_problems(c) == [
         "config.inference.handedness_reference='h63m' (must be one of 'mean_shape', "
-        "'h36m', 'coco', 'body', 'auto', or a body file (.npy, .json, .txt, .csv))"]
+        "'h36m', 'coco', 'body', 'views_mean', 'auto', or a body file (.npy, .json, .txt, .csv))"]
     c.inference.handedness_reference = "my_rig.npy"  # read when training starts
     assert validation.config_problems(c) == []
     c.inference.handedness_reference = "auto"  # resolved from the training data

@@ -263,9 +263,14 @@ def _pca_fit_2d(train, test, n_basis: int) -> np.ndarray:
                                      test.vis)
 
 
+def _dataset(run: str) -> str:
+    """The dataset of a suite run (its folder is DATASET__sSEED)."""
+    return os.path.basename(os.path.normpath(run)).split("__")[0]
+
+
 def _mocap_run(run: str, command: str) -> tuple[str, str]:
     """``(dataset, its sequence file)`` of a run of a motion-capture set with clips."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    dataset = _dataset(run)
     if dataset not in suite.MOCAP:
         raise app.UsageError(f"{run}: {command} needs a run of one of {sorted(suite.MOCAP)}")
     return dataset, os.path.join(FLAGS.data_root, "mocap",
@@ -298,7 +303,7 @@ def per_clip(run: str) -> list[tuple[str, int, float, float]]:
 
 def _test_split_and_model(run: str):
     """``(test split, the run's model)`` for a suite run."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    dataset = _dataset(run)
     test = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_test.json"))
     return test, c3dpo_jax.load(run)
 
@@ -464,7 +469,7 @@ OBJECTIVE_VIEWS = 2000
 def _training_split_and_views(run: str):
     """``(training split, up to OBJECTIVE_VIEWS of its views)`` of a suite run (a fixed
     random choice), and the random generator the choice was drawn from."""
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    dataset = _dataset(run)
     train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{dataset}_train.json"))
     rng = np.random.default_rng(0)
     return train, train.subset(np.sort(rng.permutation(len(train))[:OBJECTIVE_VIEWS])), rng
@@ -735,7 +740,7 @@ def reference(run: str) -> list[float]:
     per view. The reference: the built-in h36m body for the 17-joint human sets, else one 3D
     example, the sequence's first frame (its own units and orientation)."""
     test, model = _test_split_and_model(run)
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    dataset = _dataset(run)
     if model.config.n_keypoints == 17 and dataset in ("cmu131", "humans", "humans_v3"):
         body, kind = "h36m", 0.0
     else:
@@ -765,7 +770,7 @@ DECIDE_PROTOTYPES = ("basis' mean shape", "training views' mean")
 DECIDE_SHAPES = ("canonical shape", "output")
 DECIDE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global, the model's own views"] + [
     f"per view: {s} vs {p}, {e}" for p in DECIDE_PROTOTYPES for s in DECIDE_SHAPES
-    for e in lift_lib.HANDEDNESS_EVIDENCE]
+    for e in lift_lib.HANDEDNESS_EVIDENCE] + ["rigid fit: per-view flip", "mpjpe_global"]
 
 
 def decide(run: str) -> list[float]:
@@ -774,7 +779,8 @@ def decide(run: str) -> list[float]:
     basis' mean shape, or the mean canonical shape of up to ``OBJECTIVE_VIEWS`` training
     views as the model lifts them), read from its canonical shape or from its output (the
     input's x, y with the model's depth, what a user gets); first the paper's error and the
-    model's own views' ``mpjpe_global``."""
+    model's own views' ``mpjpe_global``; last the rigid fit's per-view-flip error and
+    ``mpjpe_global`` (one shape: one handedness by construction)."""
     import jax
     import jax.numpy as jnp
 
@@ -798,7 +804,9 @@ def decide(run: str) -> list[float]:
                 mirrored = np.asarray(evidence) < 0
                 a, b = np.where(mirrored, flip, orig), np.where(mirrored, orig, flip)
                 out.append(float(min(a.mean(), b.mean())))
-    return out
+    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{_dataset(run)}_train.json"))
+    rigid = evaluation.evaluate(_rigid_fit(train, test), test)
+    return out + [rigid["mpjpe"], rigid["mpjpe_global"]]
 
 
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).
@@ -887,7 +895,7 @@ def bone_directions(pred, truth, dataset: str) -> list[float]:
 
 
 def _bones_dataset(run: str) -> str:
-    dataset = os.path.basename(os.path.normpath(run)).split("__")[0]
+    dataset = _dataset(run)
     if dataset not in PARENTS:
         raise app.UsageError(f"{run}: bones needs a run of one of {sorted(PARENTS)}")
     return dataset
