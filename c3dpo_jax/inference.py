@@ -18,6 +18,7 @@ from functools import partial
 
 import jax
 import numpy as np
+from absl import logging
 
 from c3dpo_jax import baselines, evaluation, lift, model
 from c3dpo_jax.data.dataset import KeypointData
@@ -26,6 +27,11 @@ from c3dpo_jax.lift import InferenceConfig
 # training_views_mean: the training views it averages (the analysis that chose the reference
 # used 2,000: experiments/dev_suite/handedness.md, "The decision at the output").
 VIEWS_MEAN_VIEWS = 2000
+# with_views_mean: the share of training views whose own canonical shape reverses the views'
+# mean's small corners above which the tetrahedra are not trusted (the suite's runs: at most
+# 0.032; the built-in synthetic shapes, whose points deform freely: 0.186, their 3D truth
+# 0.188; experiments/dev_suite/handedness.md, "The decision at the output").
+TETRAHEDRA_TRUST = 0.1
 
 
 def forward_batch(variables: model.Variables, kp, vis, class_mask, intrinsics, body,
@@ -78,29 +84,47 @@ def predict_split(variables, data: KeypointData, model_cfg: model.ModelConfig,
 
 def training_views_mean(variables, data: KeypointData, model_cfg: model.ModelConfig,
                         options: InferenceConfig, max_views: int = VIEWS_MEAN_VIEWS,
-                        batch_size: int = 1024) -> tuple:
+                        batch_size: int = 1024) -> tuple[tuple, float]:
     """The rows of ``handedness_reference="views_mean"``: each point's mean canonical shape
     over up to ``max_views`` views of ``data`` (the training split; a fixed random choice)
     as the model lifts them with ``options``, each with its own handedness, over the views
-    whose class has the point."""
+    whose class has the point; and the share of those views whose canonical shape reverses
+    the rows' small corners (``lift.local_handedness_evidence`` < 0)."""
     own = dataclasses.replace(options, one_handedness=False, handedness_reference="mean_shape",
                               handedness_body=())
     idx = np.sort(np.random.default_rng(0).permutation(len(data))[:max_views])
     views = data.subset(idx)
     pred = predict_split(variables, views, model_cfg, own, batch_size)
-    mask = views.model_inputs()["class_mask"][..., None]
-    rows = (pred["shape_canonical"] * mask).sum(0) / np.maximum(mask.sum(0), 1.0)
-    return tuple(tuple(float(v) for v in row) for row in rows)
+    mask = views.model_inputs()["class_mask"]
+    rows = (pred["shape_canonical"] * mask[..., None]).sum(0) / np.maximum(
+        mask.sum(0), 1.0)[:, None]
+    evidence = jax.vmap(lift.local_handedness_evidence, (0, None, 0))(
+        *(jax.numpy.asarray(a, jax.numpy.float32) for a in (pred["shape_canonical"], rows,
+                                                             mask)))
+    return (tuple(tuple(float(v) for v in row) for row in rows),
+            float(np.mean(np.asarray(evidence) < 0)))
 
 
 def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
                     model_cfg: model.ModelConfig) -> InferenceConfig:
     """``options`` with the training views' mean rows of ``variables`` filled in, when its
-    reference is "views_mean" (``training_views_mean`` of ``data``); else as they are."""
+    reference is "views_mean" (``training_views_mean`` of ``data``); else as they are. With
+    the tetrahedra evidence, when more than ``TETRAHEDRA_TRUST`` of the training views' own
+    canonical shapes reverse the rows' small corners (shapes whose points deform freely, so
+    that a corner's chirality does not name a view's handedness), the views keep the model's
+    own handedness instead (the reference "mean_shape", without ``one_handedness``)."""
     if options.handedness_reference != "views_mean":
         return options
-    return dataclasses.replace(options, handedness_body=training_views_mean(
-        variables, data, model_cfg, options))
+    rows, reversed_share = training_views_mean(variables, data, model_cfg, options)
+    if options.handedness_evidence == "tetrahedra" and reversed_share > TETRAHEDRA_TRUST:
+        logging.info("%.0f%% of the training views' shapes reverse their mean's small corners "
+                     "(above %.0f%%): the views keep the model's own handedness "
+                     "(handedness_reference='mean_shape')", 100 * reversed_share,
+                     100 * TETRAHEDRA_TRUST)
+        return dataclasses.replace(options, handedness_reference="mean_shape",
+                                   one_handedness=False, handedness_evidence="procrustes",
+                                   handedness_from_output=False, handedness_body=())
+    return dataclasses.replace(options, handedness_body=rows)
 
 
 def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig,

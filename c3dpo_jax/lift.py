@@ -95,7 +95,7 @@ class InferenceConfig:
         views as the model lifts them, its rows in ``handedness_body`` (training fills them,
         ``resolve.views_mean``; without ``one_handedness`` the views stay as they are). A
         training config may also hold "auto" (a body whose projections fit the training
-        views, else the mean shape; ``resolve.resolve_handedness``) or a body
+        views, else the training views' mean; ``resolve.resolve_handedness``) or a body
         file (``bodies.BODY_FILE_SUFFIXES``), which are resolved before training.
       handedness_body: with "body": one 3D example of the points, N rows of (x, y, z) in
         the model's order, in any position, orientation and scale (a frame of motion

@@ -23,7 +23,7 @@ BODY_FIT_2D = 0.6  # resolve_handedness: a body's fit below it names the views' 
 BODY_FIT_VIEWS = 500  # training views it is measured on (evenly spaced through the split)
 # Evidence: experiments/dev_suite/data_variants.md, "People at different distances".
 ALIKE_SIZE_RATIO = 1.18  # resolve_keypoint_scaling: views' size ratio above it, per view
-# How "views_mean" weighs a view, where a saved config predates the settings: each output by
+# How "auto" without a body weighs a view against the training views' mean: its output, by
 # its tetrahedra (evidence: experiments/dev_suite/handedness.md, "The decision at the output").
 VIEWS_MEAN_SETTINGS = {"handedness_evidence": "tetrahedra", "handedness_from_output": True}
 
@@ -66,11 +66,14 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
     (``body_fit_2d`` below ``BODY_FIT_2D``: points in its joint order), with
     ``one_handedness`` on (the body decides each view: a model's own views can split even
     when trained to one handedness; evidence: experiments/dev_suite/handedness.md), else
-    "mean_shape" (and ``one_handedness`` as it is; a saved "views_mean" keeps how its views
-    were weighed, ``VIEWS_MEAN_SETTINGS``). A body file (``bodies.BODY_FILE_SUFFIXES``) is read into
-    ``handedness_body`` with the reference "body" and ``one_handedness`` on (a saved
-    config's body, when it has one: a resumed run keeps the body it started with). Other
-    values are returned unchanged."""
+    "views_mean" with ``one_handedness`` on and ``VIEWS_MEAN_SETTINGS`` (each output takes
+    the handedness its small tetrahedra show against the training views' mean canonical
+    shape, whose rows the run fills, or the model's own where the training views' shapes do
+    not keep their corners: ``inference.with_views_mean``); "mean_shape" for a perspective
+    model (a saved "views_mean" keeps how its views were weighed). A body file
+    (``bodies.BODY_FILE_SUFFIXES``) is read into ``handedness_body`` with the reference
+    "body" and ``one_handedness`` on (a saved config's body, when it has one: a resumed run
+    keeps the body it started with). Other values are returned unchanged."""
     reference = config.inference.handedness_reference
     before = lift.saved_options(saved or {})
     if bodies.is_body_file(reference):
@@ -108,6 +111,10 @@ def resolve_handedness(config, train_data: KeypointData, saved: dict | None = No
         config.inference.one_handedness = True
         logging.info("handedness at inference from the %r body: the training views fit its "
                      "joint order (2D distance %.2f, below %.2f)", name, fits[name], BODY_FIT_2D)
+        return config
+    config.inference.handedness_reference = "views_mean"
+    config.inference.one_handedness = True
+    config.inference.update(VIEWS_MEAN_SETTINGS)
     return config
 
 

@@ -103,12 +103,12 @@ def save_config(workdir: str, config: dict[str, Any]) -> None:
     checkpoint.write_json(os.path.join(workdir, CONFIG_FILE), config, indent=2, sort_keys=True)
 
 
-def save_inference_rows(workdir: str, rows) -> None:
-    """Writes ``rows`` (N rows of x, y, z: the training views' mean canonical shape of the
-    run's last evaluation) into config.json's ``inference.handedness_body``, which loading
-    the model reads (``handedness_reference="views_mean"``)."""
+def save_inference(workdir: str, inference: dict[str, Any]) -> None:
+    """Writes ``inference`` as config.json's ``inference`` section: a run that ends with
+    the training views' mean filled in (``inference.with_views_mean``), which loading the
+    model reads."""
     config = load_config(workdir)
-    config["inference"]["handedness_body"] = [list(row) for row in rows]
+    config["inference"] = json.loads(json.dumps(inference))  # tuples as JSON lists
     save_config(workdir, config)
 
 

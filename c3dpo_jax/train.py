@@ -425,8 +425,8 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         writer.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
-    if used[0].handedness_reference == "views_mean":  # what inference of the model reads
-        run_config.save_inference_rows(workdir, used[0].handedness_body)
+    if options.handedness_reference == "views_mean":  # what inference of the model reads
+        run_config.save_inference(workdir, used[0].to_dict())
     results = {"history": history, "final": final,
                "baselines": evaluate_baselines(train_data, test_data, protocol)}
     run_records.write_results(workdir, results)

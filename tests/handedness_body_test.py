@@ -254,9 +254,9 @@ def test_c3dpo_predict_takes_a_body_file(tmp_path):
 
 
 def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
-    """``handedness_reference="views_mean"`` (tetrahedra, weighed at the output): the run
-    evaluates with the rows of each evaluation's model and writes the last ones into
-    config.json: the mean canonical shape of the training views (numpy, from the
+    """``handedness_reference="views_mean"``, weighed at the output: the run evaluates with
+    the rows of each evaluation's model and writes the last ones into config.json: the mean
+    canonical shape of the training views (numpy, from the
     model's own predictions), which ``load`` gives back, ``reconstruct`` uses and
     ``--mode=eval`` recomputes for the step it scores, with the same scores."""
     import c3dpo_jax
@@ -266,8 +266,9 @@ def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
     c = default.apply_variants(default.get_config(), "smoke")
     c.model.n_keypoints = c.data.synthetic.n_keypoints = 8
     c.model.shape_basis_size = 3
+    # The whole-shape evidence: the tetrahedra's trust check (below) is not at stake here.
     c.inference.update(handedness_reference="views_mean", one_handedness=True,
-                       **resolve.VIEWS_MEAN_SETTINGS)
+                       handedness_from_output=True)
     c.train.ckpt_every, c.train.progress_bar = 5, False
     c.train.num_steps = 5
     workdir = str(tmp_path / "run")
@@ -275,7 +276,7 @@ def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
     params = c3dpo_jax.load(workdir)
     got = params.inference
     assert (got.handedness_reference, got.one_handedness, got.handedness_evidence,
-            got.handedness_from_output) == ("views_mean", True, "tetrahedra", True)
+            got.handedness_from_output) == ("views_mean", True, "procrustes", True)
     train_data, _ = load_splits(c.data)
     idx = np.sort(np.random.default_rng(0).permutation(len(train_data))[
         :inference.VIEWS_MEAN_VIEWS])
@@ -285,13 +286,13 @@ def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
     np.testing.assert_allclose(np.asarray(got.handedness_body),
                                own.shape_canonical.mean(0), rtol=1e-4, atol=1e-5)
     rec = reconstruct(params, views.kp, views.vis)
-    # Views mirrored exactly where their output's tetrahedra reverse the rows' chirality.
+    # Views mirrored exactly where their output is nearer the rows' mirror image.
     output = np.concatenate([rec.shape_3d[..., :2], own.shape_3d[..., 2:]], -1)
-    evidence = jax.vmap(lift.local_handedness_evidence, (0, None, None))(
+    evidence = jax.vmap(lift.handedness_evidence, (0, None, None))(
         jnp.asarray(output, jnp.float32), jnp.asarray(got.handedness_body, jnp.float32),
         jnp.ones(8))
     flipped = np.asarray(evidence) < 0
-    assert 0 < flipped.mean() < 1  # the 5-step model's outputs are split (46% here)
+    assert 0 < flipped.mean() < 1  # the 5-step model's outputs are split
     def centred_depth(r):
         return r.shape_3d[..., 2] - r.shape_3d[..., 2].mean(1, keepdims=True)
 
@@ -301,3 +302,45 @@ def test_a_run_stores_its_training_views_mean_and_inference_uses_it(tmp_path):
     for key in ("mpjpe", "mpjpe_global", "mpjpe_orig", "mirrored"):
         np.testing.assert_allclose(scored[key], out["final"][key], rtol=1e-5)
     assert "inference" not in scored  # the rows are not an option that differs
+
+
+@pytest.mark.parametrize("spread, trusted", [(0.02, True), (30.0, False)])
+def test_the_tetrahedra_are_trusted_only_where_the_training_shapes_keep_their_corners(
+        spread, trusted):
+    """``inference.with_views_mean`` with the tetrahedra: canonical shapes near one mean
+    (a basis of small modes) keep its small corners, and the views' mean is the reference;
+    modes that move the points by a third of the shape's size deform it freely, more than
+    ``TETRAHEDRA_TRUST`` of the views reverse the corners (numpy's determinants), and the
+    views keep the model's own handedness."""
+    from scipy.spatial import cKDTree
+
+    from c3dpo_jax import inference
+    from c3dpo_jax.data import KeypointData
+
+    variables = _variables(0, _rig(3))
+    rng = np.random.default_rng(1)
+    kernel = variables["params"]["shape_layer"]["kernel"]
+    variables["params"]["shape_layer"]["kernel"] = jnp.asarray(
+        spread * rng.normal(size=kernel.shape), jnp.float32)
+    data = KeypointData(kp=rng.normal(size=(64, K, 2)).astype(np.float32),
+                        vis=np.ones((64, K), np.float32))
+    options = lift.InferenceConfig(handedness_reference="views_mean", one_handedness=True,
+                                   **resolve.VIEWS_MEAN_SETTINGS)
+    own = reconstruct(C3DPOParams(variables, CFG), data.kp, data.vis).shape_canonical
+    rows = own.mean(0)
+    corners = cKDTree(rows).query(rows, k=4)[1]
+
+    def chirality(y):
+        edges = y[..., corners[:, 1:], :] - y[..., corners[:, :1], :]
+        return np.linalg.det(edges) / np.prod(np.linalg.norm(edges, axis=-1), -1)
+
+    reversed_share = np.mean((chirality(own) * chirality(rows)).sum(-1) < 0)
+    assert (reversed_share <= inference.TETRAHEDRA_TRUST) == trusted
+    got = inference.with_views_mean(options, variables, data, CFG)
+    if trusted:
+        assert got.handedness_reference == "views_mean" and got.one_handedness
+        np.testing.assert_allclose(np.asarray(got.handedness_body), rows, rtol=1e-4,
+                                   atol=1e-5)
+    else:
+        assert (got.handedness_reference, got.one_handedness, got.handedness_body) == (
+            "mean_shape", False, ())

@@ -124,16 +124,22 @@ def test_handedness_from_a_body_whose_projections_fit_the_training_views():
     assert resolve.body_fit_2d(coco_body, people) > 1.2 * resolve.BODY_FIT_2D
     got = resolve.resolve_handedness(c, coco).inference
     assert (got.handedness_reference, got.one_handedness) == ("coco", True)
-    for data, change in ((shuffled, {}), (people, {"projection_type": "perspective"}),
-                         (people, {"n_keypoints": 20})):
+    # No body fits: each output weighed by its tetrahedra against the training views' mean
+    # (its rows filled when the run evaluates); a perspective model: the mean shape, as is.
+    for data, change, want in (
+            (shuffled, {}, ("views_mean", True, "tetrahedra", True)),
+            (people, {"n_keypoints": 20}, ("views_mean", True, "tetrahedra", True)),
+            (people, {"projection_type": "perspective"},
+             ("mean_shape", False, "procrustes", False))):
         c2 = own_json.get_config()
         c2.model.n_keypoints = 17
         c2.model.update(change)
         got = resolve.resolve_handedness(c2, data).inference
-        assert (got.handedness_reference, got.one_handedness) == (
-            "mean_shape", False)
-    # A saved "views_mean" (a run trained with it) keeps how its views were weighed, and
-    # takes VIEWS_MEAN_SETTINGS where the saved config predates them.
+        assert (got.handedness_reference, got.one_handedness, got.handedness_evidence,
+                got.handedness_from_output) == want
+        assert got.handedness_body == ()
+    # A saved "views_mean" keeps how its views were weighed, and takes VIEWS_MEAN_SETTINGS
+    # where the saved config predates them.
     for saved, want in (({"handedness_reference": "views_mean", "one_handedness": True,
                           "handedness_evidence": "procrustes", "handedness_from_output": False},
                          ("procrustes", False)),

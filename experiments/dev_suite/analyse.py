@@ -111,6 +111,11 @@ the more self-consistent the nearer the re-lifted depths are to its own turned o
 share of views whose truth is more consistent than the prediction, and the MPJPE when each
 view takes its most consistent candidate, beside the oracle's choice among the same ones.
 
+``chirality``: for the built-in synthetic dataset and each dataset whose views ``suite.py``
+has made, the share of the 3D truth's test shapes whose whole-shape or tetrahedra
+handedness evidence against the training shapes' Procrustes mean is negative: how far each
+evidence can be trusted to name a view's handedness on that kind of shape.
+
 ``decide --runs=DIR,DIR,...``: for trained runs, the test views' ``mpjpe_global`` once
 each view is given the handedness that its canonical shape or its output (the input's x, y
 and the model's depth) shows against a prototype (the basis' mean shape, or the mean
@@ -766,6 +771,30 @@ def reference(run: str) -> list[float]:
             kind]
 
 
+CHIRALITY_COLUMNS = ["test views", "whole-shape evidence < 0", "tetrahedra evidence < 0",
+                     "tetrahedra evidence, 1st percentile"]
+
+
+def chirality(name: str, train, test) -> list[float]:
+    """Of the 3D truth of ``test``'s views, against the Procrustes mean of ``train``'s: the
+    share whose whole-shape and tetrahedra handedness evidence (``lift.evidence``) is
+    negative (what a perfect model's views would read), and the tetrahedra's 1st
+    percentile."""
+    import jax
+    import jax.numpy as jnp
+
+    mean = jnp.asarray(baselines.procrustes_mean_shape(train.kp3d.astype(np.float64)),
+                       jnp.float32)
+    shapes = jnp.asarray(test.kp3d, jnp.float32)
+    ones = jnp.ones(shapes.shape[1])
+    out = [float(len(test))]
+    for kind in lift_lib.HANDEDNESS_EVIDENCE:
+        evidence = np.asarray(jax.vmap(lift_lib.evidence(kind), (0, None, None))(
+            shapes, mean, ones))
+        out.append(float(np.mean(evidence < 0)))
+    return out + [float(np.percentile(evidence, 1))]
+
+
 DECIDE_PROTOTYPES = ("basis' mean shape", "training views' mean")
 DECIDE_SHAPES = ("canonical shape", "output")
 DECIDE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global, the model's own views"] + [
@@ -1065,9 +1094,10 @@ def _run_tables() -> dict:
 def main(argv):
     c3dpo_jax.cli.setup_logging()  # no orbax chatter for every checkpoint loaded
     tables = _run_tables()
-    if len(argv) != 2 or argv[1] not in (*tables, "floors", "clips", "ensemble"):
-        raise app.UsageError("usage: analyse.py floors | clips --run=RUN_DIR | ensemble "
-                             "--runs=... | " + " | ".join(f"{t} --runs=..." for t in tables)
+    if len(argv) != 2 or argv[1] not in (*tables, "floors", "chirality", "clips", "ensemble"):
+        raise app.UsageError("usage: analyse.py floors | chirality | clips --run=RUN_DIR | "
+                             "ensemble --runs=... | "
+                             + " | ".join(f"{t} --runs=..." for t in tables)
                              + " (refine: [--priors=...])")
     if argv[1] in tables:
         _each_run(*tables[argv[1]])
@@ -1082,6 +1112,22 @@ def main(argv):
                                 + ["mean of all, signs matched"]) + " |")
         print("|" + "---|" * len(values))
         print("| " + " | ".join(f"{v:.4f}" for v in values) + " |")
+        return
+    if argv[1] == "chirality":
+        from c3dpo_jax.data import load_splits
+        from configs import synthetic
+
+        print("| dataset | " + " | ".join(CHIRALITY_COLUMNS) + " |\n|---|" + "---|" * 4)
+        data_dir = os.path.join(FLAGS.out, "data")
+        splits = {"built-in synthetic (configs/synthetic.py)": load_splits(
+            synthetic.get_config().data)}
+        for name in suite.DATASETS:
+            if os.path.exists(os.path.join(data_dir, f"{name}_test.json")):
+                splits[name] = tuple(json_dataset.load(os.path.join(
+                    data_dir, f"{name}_{split}.json")) for split in ("train", "test"))
+        for name, (train, test) in splits.items():
+            print(f"| {name} | " + " | ".join(
+                f"{v:.4f}" for v in chirality(name, train, test)) + " |")
         return
     if argv[1] == "floors":
         data_dir = os.path.join(FLAGS.out, "data")
