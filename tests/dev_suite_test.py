@@ -47,7 +47,15 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
         config = json.load(f)
     assert config["optim"]["lr"] == 0.001 and config["model"]["n_keypoints"] == 9
     assert config["model"]["keypoint_rescale"] > 0  # own_json's 0 ("auto") resolved, saved
-    assert config["inference"]["handedness_reference"] == "mean_shape"  # 9 points
+    # 9 points, no built-in body: the training views' mean, its rows written when the run
+    # ended, or the model's own handedness where its shapes do not keep their corners.
+    inference = config["inference"]
+    if inference["handedness_reference"] == "views_mean":
+        assert np.asarray(inference["handedness_body"]).shape == (9, 3)
+        assert inference["one_handedness"] and inference["handedness_from_output"]
+    else:
+        assert (inference["handedness_reference"], inference["one_handedness"]) == (
+            "mean_shape", False)
     assert config["model"]["keypoint_scaling"] == "global"  # one distance: one input scale
     with open(workdir / "eval_results.json") as f:
         res = json.load(f)
@@ -77,6 +85,16 @@ def test_suite_trains_through_the_cli_and_tabulates_every_column(tmp_path, smoke
     again = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=str(tmp_path),
                            env=smoke_subprocess_env())
     assert "[core" not in again.stdout
+    # --rescore: the finished run scored again with other inference options, its curve kept.
+    rescored = subprocess.run([*cmd, "--rescore=inference.refine_iters=0"], check=True,
+                              capture_output=True, text=True, cwd=str(tmp_path),
+                              env=smoke_subprocess_env())
+    assert "[core" in rescored.stdout
+    with open(workdir / "eval_results.json") as f:
+        again_res = json.load(f)
+    assert again_res["history"] == res["history"] and again_res["final"]["step"] == 20
+    assert again_res["final"]["inference"] == {"refine_iters": 0}
+    assert again_res["final"]["mpjpe"] != res["final"]["mpjpe"]
     # A run of the variant's name made from another config is neither reused nor resumed.
     other = [c if not c.startswith("--variant=") else "--variant=lr:optim.lr=0.002" for c in cmd]
     refused = subprocess.run(other, capture_output=True, text=True, cwd=str(tmp_path),

@@ -6,6 +6,7 @@ on JSON files made by the library's importer), so the numbers are what the CLI g
   python experiments/dev_suite/suite.py                       # default recipe, 3 seeds, all data
   python experiments/dev_suite/suite.py --variant=canon10:loss.w_canonicalization=10
   python experiments/dev_suite/suite.py --datasets=deepmimic,cmu131 --seeds=0 --report_only
+  python experiments/dev_suite/suite.py --rescore=inference.refine_iters=0   # finished runs
 
 Datasets (``--data_root``: the directory holding ``nrsfm/`` and ``mocap/``):
 
@@ -142,6 +143,9 @@ flags.DEFINE_string("out", os.path.join(HERE, "results"), "where data, runs and 
 flags.DEFINE_integer("jobs", 2, "runs at a time (each pinned to one core)")
 flags.DEFINE_integer("eval_every_steps", 1000, "test evaluations along the curve")
 flags.DEFINE_bool("report_only", False, "only print the tables of the runs already made")
+flags.DEFINE_list("rescore", [], "KEY=VALUE,... (config overrides, e.g. of inference.*): score "
+                  "each finished run asked for again from its latest checkpoint with them "
+                  "(--mode=eval: its final scores replaced, its curve kept), then tabulate")
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
@@ -524,7 +528,10 @@ def main(argv):
                             f"{os.path.relpath(workdir, FLAGS.out)} was made with another config "
                             f"than variant {name!r} asks ({'; '.join(wrong[:3])}): give the "
                             "variant another name")
-                    if not is_finished(workdir):
+                    if FLAGS.rescore and is_finished(workdir):
+                        jobs.append((workdir, command(data[d], overrides + FLAGS.rescore,
+                                                     seed, workdir) + ["--mode=eval"]))
+                    elif not is_finished(workdir) and not FLAGS.rescore:
                         jobs.append((workdir, command(data[d], overrides, seed, workdir)))
         run_all(jobs, FLAGS.jobs, FLAGS.out)
     for name, overrides in variants:
