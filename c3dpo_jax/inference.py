@@ -117,10 +117,9 @@ def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
         return options
     rows, reversed_share = training_views_mean(variables, data, model_cfg, options)
     if options.handedness_evidence == "tetrahedra" and reversed_share > TETRAHEDRA_TRUST:
-        logging.info("%.0f%% of the training views' shapes reverse their mean's small corners "
-                     "(above %.0f%%): the views keep the model's own handedness "
-                     "(handedness_reference='mean_shape')", 100 * reversed_share,
-                     100 * TETRAHEDRA_TRUST)
+        logging.debug("%.0f%% of the training views' shapes reverse their mean's small "
+                      "corners (above %.0f%%): the views keep the model's own handedness",
+                      100 * reversed_share, 100 * TETRAHEDRA_TRUST)
         return dataclasses.replace(options, handedness_reference="mean_shape",
                                    one_handedness=False, handedness_evidence="procrustes",
                                    handedness_from_output=False, handedness_body=())

@@ -40,6 +40,7 @@ from c3dpo_jax import (
     checkpoint,
     device_data,
     evaluation,
+    inference,
     lift,
     model,
     progress,
@@ -345,6 +346,20 @@ def _record_evaluation(workdir: str, history: list[dict], writer, hooks: Hooks,
         hooks.after_evaluation(history[-1], state)
 
 
+def _save_views_mean(workdir: str, options: InferenceConfig, used: InferenceConfig) -> None:
+    """With the reference "views_mean", writes the inference of the run's last evaluation
+    (``used``: its rows, or the model's own handedness where the guard of
+    ``inference.with_views_mean`` fell back) into config.json, which loading the model
+    reads."""
+    if options.handedness_reference != "views_mean":
+        return
+    run_config.save_inference(workdir, used.to_dict())
+    if used.handedness_reference != "views_mean":
+        logging.info("handedness at inference: the model's own (more than %.0f%% of the "
+                     "training views' shapes reverse their mean's small corners, which then "
+                     "do not name a view's handedness)", 100 * inference.TETRAHEDRA_TRUST)
+
+
 def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     """``train_and_evaluate``'s run, the workdir locked."""
     train_data, test_data = load_splits(config.data)
@@ -425,8 +440,7 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
         writer.scalars(step, final, prefix="test/")
         if hooks.after_evaluation is not None:
             hooks.after_evaluation(final, state)
-    if options.handedness_reference == "views_mean":  # what inference of the model reads
-        run_config.save_inference(workdir, used[0].to_dict())
+    _save_views_mean(workdir, options, used[0])
     results = {"history": history, "final": final,
                "baselines": evaluate_baselines(train_data, test_data, protocol)}
     run_records.write_results(workdir, results)
