@@ -92,7 +92,7 @@ def evaluate_checkpoint(config, workdir: str, save: bool = True) -> dict:
     _check_model(saved, model_cfg, template, workdir)
     variables, step = checkpoint.restore_variables(workdir, template)
     validation.check_data(test_data, model_cfg, "test")
-    options = with_views_mean(options, variables, train_data, model_cfg)  # the step's own
+    options = with_views_mean(options, variables, train_data, model_cfg)[0]  # the step's own
     final = evaluate_split(variables, test_data, model_cfg, options, config.data.protocol,
                            batch_size=config.train.eval_batch_size)
     before = run_records.read_results(workdir)

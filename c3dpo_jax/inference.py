@@ -18,7 +18,6 @@ from functools import partial
 
 import jax
 import numpy as np
-from absl import logging
 
 from c3dpo_jax import baselines, evaluation, lift, model
 from c3dpo_jax.data.dataset import KeypointData
@@ -106,24 +105,23 @@ def training_views_mean(variables, data: KeypointData, model_cfg: model.ModelCon
 
 
 def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
-                    model_cfg: model.ModelConfig) -> InferenceConfig:
+                    model_cfg: model.ModelConfig) -> tuple[InferenceConfig, float | None]:
     """``options`` with the training views' mean rows of ``variables`` filled in, when its
-    reference is "views_mean" (``training_views_mean`` of ``data``); else as they are. With
-    the tetrahedra evidence, when more than ``TETRAHEDRA_TRUST`` of the training views' own
-    canonical shapes reverse the rows' small corners (shapes whose points deform freely, so
-    that a corner's chirality does not name a view's handedness), the views keep the model's
-    own handedness instead (the reference "mean_shape", without ``one_handedness``)."""
+    reference is "views_mean" (``training_views_mean`` of ``data``), and the share of those
+    views whose own canonical shape reverses the rows' small corners; else ``options`` as
+    they are and None. With the tetrahedra evidence, when that share is above
+    ``TETRAHEDRA_TRUST`` (shapes whose points deform freely, so that a corner's chirality
+    does not name a view's handedness), the views keep the model's own handedness instead
+    (the reference "mean_shape", without ``one_handedness``)."""
     if options.handedness_reference != "views_mean":
-        return options
+        return options, None
     rows, reversed_share = training_views_mean(variables, data, model_cfg, options)
     if options.handedness_evidence == "tetrahedra" and reversed_share > TETRAHEDRA_TRUST:
-        logging.debug("%.0f%% of the training views' shapes reverse their mean's small "
-                      "corners (above %.0f%%): the views keep the model's own handedness",
-                      100 * reversed_share, 100 * TETRAHEDRA_TRUST)
         return dataclasses.replace(options, handedness_reference="mean_shape",
                                    one_handedness=False, handedness_evidence="procrustes",
-                                   handedness_from_output=False, handedness_body=())
-    return dataclasses.replace(options, handedness_body=rows)
+                                   handedness_from_output=False,
+                                   handedness_body=()), reversed_share
+    return dataclasses.replace(options, handedness_body=rows), reversed_share
 
 
 def evaluate_split(variables, data: KeypointData, model_cfg: model.ModelConfig,

@@ -76,7 +76,9 @@ _INFERENCE_HELP = {
                             "'h36m' (Human3.6M's 17 joints) or 'coco' (COCO's 17 person "
                             "keypoints), or a file of one 3D example of the points in the "
                             "model's order (.npy, .json, .txt, .csv: N rows of x, y, z, any "
-                            "pose, orientation and scale); a body turns --one_handedness on, "
+                            "pose, orientation and scale), or 'views_mean' (the training "
+                            "views' mean shape, stored with a model trained with it); a body "
+                            "turns --one_handedness on, "
                             "and with --noone_handedness it mirrors every view or none, as the "
                             "model's mean shape is the body's mirror image or not.",
     "handedness_body": "A file of one 3D example of the points, as --handedness_reference "

@@ -346,18 +346,22 @@ def _record_evaluation(workdir: str, history: list[dict], writer, hooks: Hooks,
         hooks.after_evaluation(history[-1], state)
 
 
-def _save_views_mean(workdir: str, options: InferenceConfig, used: InferenceConfig) -> None:
+def _save_views_mean(workdir: str, options: InferenceConfig, used) -> None:
     """With the reference "views_mean", writes the inference of the run's last evaluation
-    (``used``: its rows, or the model's own handedness where the guard of
-    ``inference.with_views_mean`` fell back) into config.json, which loading the model
-    reads."""
+    (``used``: ``inference.with_views_mean``'s options, with their rows or, where its guard
+    fell back, the model's own handedness, and the share it weighed) into config.json,
+    which loading the model reads, and says which."""
     if options.handedness_reference != "views_mean":
         return
+    used, share = used
     run_config.save_inference(workdir, used.to_dict())
-    if used.handedness_reference != "views_mean":
-        logging.info("handedness at inference: the model's own (more than %.0f%% of the "
-                     "training views' shapes reverse their mean's small corners, which then "
-                     "do not name a view's handedness)", 100 * inference.TETRAHEDRA_TRUST)
+    if share is None:  # the guard's share applies to the tetrahedra only
+        return
+    kept = used.handedness_reference == "views_mean"
+    logging.info("handedness at inference: %s (%.1f%% of the training views' shapes reverse "
+                 "their mean's small corners; at most %.0f%%: they name a view's handedness)",
+                 "each output's, from its small corners" if kept else "the model's own",
+                 100 * share, 100 * inference.TETRAHEDRA_TRUST)
 
 
 def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
@@ -373,11 +377,12 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     chunk, state, data = _compiled_chunk(config, spec, train_data, state)
     protocol, eval_bs = config.data.protocol, config.train.eval_batch_size
 
-    used = [options]  # the options of the latest evaluation (the views' mean filled in)
+    used = [(options, None)]  # the latest evaluation's (the views' mean filled in, share)
 
     def evaluate(state, step):
         used[0] = with_views_mean(options, state.variables, train_data, spec.model)
-        res = evaluate_split(state.variables, test_data, spec.model, used[0], protocol, eval_bs)
+        res = evaluate_split(state.variables, test_data, spec.model, used[0][0], protocol,
+                             eval_bs)
         return dict(step=step, epoch=step // spec.steps_per_epoch, train_s=train_s, **res)
 
     # A resumed run keeps the evaluations made before its checkpoint and their clock.

@@ -336,7 +336,8 @@ def test_the_tetrahedra_are_trusted_only_where_the_training_shapes_keep_their_co
 
     reversed_share = np.mean((chirality(own) * chirality(rows)).sum(-1) < 0)
     assert (reversed_share <= inference.TETRAHEDRA_TRUST) == trusted
-    got = inference.with_views_mean(options, variables, data, CFG)
+    got, share = inference.with_views_mean(options, variables, data, CFG)
+    np.testing.assert_allclose(share, reversed_share)
     if trusted:
         assert got.handedness_reference == "views_mean" and got.one_handedness
         np.testing.assert_allclose(np.asarray(got.handedness_body), rows, rtol=1e-4,

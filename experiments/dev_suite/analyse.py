@@ -143,6 +143,7 @@ from runner import run_main  # noqa: E402
 import c3dpo_jax  # noqa: E402
 import c3dpo_jax.cli  # noqa: E402
 from c3dpo_jax import baselines, evaluation  # noqa: E402
+from c3dpo_jax import inference as inference_lib  # noqa: E402
 from c3dpo_jax import lift as lift_lib  # noqa: E402
 from c3dpo_jax import model as model_lib  # noqa: E402
 from c3dpo_jax.data import importers, json_dataset  # noqa: E402
@@ -799,7 +800,8 @@ DECIDE_PROTOTYPES = ("basis' mean shape", "training views' mean")
 DECIDE_SHAPES = ("canonical shape", "output")
 DECIDE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global, the model's own views"] + [
     f"per view: {s} vs {p}, {e}" for p in DECIDE_PROTOTYPES for s in DECIDE_SHAPES
-    for e in lift_lib.HANDEDNESS_EVIDENCE] + ["rigid fit: per-view flip", "mpjpe_global"]
+    for e in lift_lib.HANDEDNESS_EVIDENCE] + [
+    "training views reversing their mean's corners", "rigid fit: per-view flip", "mpjpe_global"]
 
 
 def decide(run: str) -> list[float]:
@@ -808,8 +810,10 @@ def decide(run: str) -> list[float]:
     basis' mean shape, or the mean canonical shape of up to ``OBJECTIVE_VIEWS`` training
     views as the model lifts them), read from its canonical shape or from its output (the
     input's x, y with the model's depth, what a user gets); first the paper's error and the
-    model's own views' ``mpjpe_global``; last the rigid fit's per-view-flip error and
-    ``mpjpe_global`` (one shape: one handedness by construction)."""
+    model's own views' ``mpjpe_global``; last the share of those training views whose own
+    canonical shape reverses their mean's small corners (``inference.with_views_mean``'s
+    guard), the rigid fit's per-view-flip error and ``mpjpe_global`` (one shape: one
+    handedness by construction)."""
     import jax
     import jax.numpy as jnp
 
@@ -834,8 +838,10 @@ def decide(run: str) -> list[float]:
                 a, b = np.where(mirrored, flip, orig), np.where(mirrored, orig, flip)
                 out.append(float(min(a.mean(), b.mean())))
     train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{_dataset(run)}_train.json"))
+    reversed_share = inference_lib.training_views_mean(model.variables, train, model.config,
+                                                       model.inference)[1]
     rigid = evaluation.evaluate(_rigid_fit(train, test), test)
-    return out + [rigid["mpjpe"], rigid["mpjpe_global"]]
+    return out + [reversed_share, rigid["mpjpe"], rigid["mpjpe_global"]]
 
 
 # Kinematic trees of the human sets (``parents[j]``: j's parent, -1 for the root).

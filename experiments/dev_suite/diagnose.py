@@ -154,8 +154,9 @@ def main(argv):
 
     def after_evaluation(record, state):
         variables = jax.device_get(state.variables)
+        used = inference.with_views_mean(options, variables, train_data, spec.model)[0]
         for split, data in (("train", train_sub), ("test", test_data)):
-            pred = inference.predict_split(variables, data, spec.model, options)
+            pred = inference.predict_split(variables, data, spec.model, used)
             row = dict(step=record["step"], split=split,
                        **measure(pred, data, vpf, info["protocol"]))
             records.write(row)

@@ -40,7 +40,8 @@ def main(argv):
     del argv
     c, info = suite.run_config(FLAGS.dataset, FLAGS.seed)
     test_data = json_dataset.load(info["test"])
-    c = resolve.resolve_from_data(c, json_dataset.load(info["train"]))  # once, before training
+    train_data = json_dataset.load(info["train"])
+    c = resolve.resolve_from_data(c, train_data)  # once, before training
     spec = train.RunSpec.from_config(c)
     options = lift.inference_config(spec.model, spec.inference)
     taus = [float(t) for t in FLAGS.taus]
@@ -65,8 +66,10 @@ def main(argv):
         row = {"step": record["step"], "raw": record["mpjpe"],
                "raw_mirrored": record.get("mirrored")}
         for tau, params in emas.items():
-            res = inference.evaluate_split({"params": params, "batch_stats": stats}, test_data,
-                                       spec.model, options, info["protocol"])
+            variables = {"params": params, "batch_stats": stats}
+            used = inference.with_views_mean(options, variables, train_data, spec.model)[0]
+            res = inference.evaluate_split(variables, test_data, spec.model, used,
+                                           info["protocol"])
             row[f"ema{int(tau)}"] = res["mpjpe"]
         with open(path, "a") as f:
             f.write(json.dumps(row) + "\n")

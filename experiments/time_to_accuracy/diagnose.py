@@ -133,6 +133,7 @@ def main(argv):
     options = lift.inference_config(model_cfg, lift.InferenceConfig.from_dict(c.inference))
     with open(FLAGS.variables, "rb") as f:
         variables = flax.serialization.msgpack_restore(f.read())
+    options = inference.with_views_mean(options, variables, train_data, model_cfg)[0]
     result = diagnose(variables, train_data, test_data, protocol, model_cfg, options,
                       FLAGS.noise_var)
     width = max(map(len, result))
