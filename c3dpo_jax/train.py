@@ -390,6 +390,12 @@ def _train_and_evaluate(config, workdir: str, hooks: Hooks) -> dict:
     pbar = progress.progress_bar(total=total, initial=step, unit="step", dynamic_ncols=True,
                                  disable=not config.train.progress_bar, desc="train")
     writer = run_records.MetricsWriter(workdir, pbar, resumed_from=step)
+    if 0 < step < total and spec.eval_every and step % spec.eval_every == 0 and (
+            not history or history[-1]["step"] != step):
+        # Killed after the checkpoint of an evaluation's step, before the evaluation was
+        # recorded: made now, so that the curve has it.
+        history.append(evaluate(state, step))
+        _record_evaluation(workdir, history, writer, hooks, state)
 
     def close() -> None:
         """Ends the bar (before any message) and finishes and seals the saves in flight."""

@@ -211,6 +211,29 @@ def test_stop_and_resume_equals_an_uninterrupted_run(tmp_path, caplog):
     assert "holds a checkpoint at step 20, past the 10 steps asked for" in caplog.text
 
 
+def test_an_evaluation_lost_to_a_kill_after_its_checkpoint_is_made_on_resuming(tmp_path):
+    """A kill after the checkpoint of an evaluation's step and before that evaluation was
+    recorded (its record removed here) leaves a curve without it; resuming makes it first,
+    equal to the uninterrupted run's."""
+    from c3dpo_jax import run_records
+
+    c = _tiny_config(30)
+    c.train.eval_every_steps = 10
+    whole = train.train_and_evaluate(c, str(tmp_path / "whole"))
+    c.train.num_steps = 20
+    workdir = str(tmp_path / "killed")
+    train.train_and_evaluate(c, workdir)
+    records = run_records.read_results(workdir)
+    run_records.write_results(workdir, {"history": [h for h in records["history"]
+                                                    if h["step"] < 20]})
+    c.train.num_steps = 30
+    resumed = train.train_and_evaluate(c, workdir)
+    assert [h["step"] for h in resumed["history"]] == [h["step"] for h in whole["history"]]
+    lost = next(h for h in resumed["history"] if h["step"] == 20)
+    want = next(h for h in whole["history"] if h["step"] == 20)
+    assert lost["mpjpe"] == pytest.approx(want["mpjpe"], abs=1e-6)
+
+
 def test_a_workdir_that_is_a_file_is_named(tmp_path):
     (tmp_path / "file").write_text("")
     for run in (train.train_and_evaluate, evaluate_workdir.evaluate_checkpoint):
