@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from c3dpo_jax import baselines, evaluation, lift, model
+from c3dpo_jax.data import bodies
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.lift import InferenceConfig
 
@@ -111,12 +112,15 @@ def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
     views whose own canonical shape reverses the rows' small corners; else ``options`` as
     they are and None. With the tetrahedra evidence, when that share is above
     ``TETRAHEDRA_TRUST`` (shapes whose points deform freely, so that a corner's chirality
-    does not name a view's handedness), the views keep the model's own handedness instead
-    (the reference "mean_shape", without ``one_handedness``)."""
+    does not name a view's handedness), or when the rows lie near one plane
+    (``bodies.body_problem``), the views keep the model's own handedness instead (the
+    reference "mean_shape", without ``one_handedness``)."""
     if options.handedness_reference != "views_mean":
         return options, None
     rows, reversed_share = training_views_mean(variables, data, model_cfg, options)
-    if options.handedness_evidence == "tetrahedra" and reversed_share > TETRAHEDRA_TRUST:
+    flat = bodies.body_problem(rows, model_cfg.n_keypoints)  # no handedness to give
+    if flat or (options.handedness_evidence == "tetrahedra"
+                and reversed_share > TETRAHEDRA_TRUST):
         return dataclasses.replace(options, handedness_reference="mean_shape",
                                    one_handedness=False, handedness_evidence="procrustes",
                                    handedness_from_output=False,

@@ -42,7 +42,7 @@ TURN_RANGE_SLACK = 1e-3
 # joint order: the basis' mean shape (None) or a built-in body (``bodies.HUMAN_BODIES``).
 HANDEDNESS_REFERENCES = {"mean_shape": None, **bodies.HUMAN_BODIES}
 # The references whose points are rows of ``handedness_body``: a user's 3D example, and the
-# training views' mean canonical shape (``resolve.views_mean``).
+# training views' mean canonical shape (``inference.training_views_mean``).
 ROWS_REFERENCES = ("body", "views_mean")
 # The ways of weighing a shape's handedness against a reference (``evidence``).
 HANDEDNESS_EVIDENCE = ("procrustes", "tetrahedra")
@@ -93,7 +93,7 @@ class InferenceConfig:
         given the body's handedness favour together (``mean_shape_handed_as``,
         ``handedness_evidence``), or "views_mean", the mean canonical shape of the training
         views as the model lifts them, its rows in ``handedness_body`` (training fills them,
-        ``resolve.views_mean``; without ``one_handedness`` the views stay as they are). A
+        ``inference.training_views_mean``; without ``one_handedness`` the views stay as they are). A
         training config may also hold "auto" (a body whose projections fit the training
         views, else the training views' mean; ``resolve.resolve_handedness``) or a body
         file (``bodies.BODY_FILE_SUFFIXES``), which are resolved before training.
