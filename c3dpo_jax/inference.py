@@ -28,9 +28,8 @@ from c3dpo_jax.lift import InferenceConfig
 # used 2,000: experiments/dev_suite/handedness.md, "The decision at the output").
 VIEWS_MEAN_VIEWS = 2000
 # with_views_mean: the share of training views whose own canonical shape reverses the views'
-# mean's small corners above which the tetrahedra are not trusted (the suite's runs: at most
-# 0.032; the built-in synthetic shapes, whose points deform freely: 0.186, their 3D truth
-# 0.188; experiments/dev_suite/handedness.md, "The decision at the output").
+# mean's small corners above which the tetrahedra are not trusted (evidence:
+# experiments/dev_suite/handedness.md, "The decision at the output").
 TETRAHEDRA_TRUST = 0.1
 
 
