@@ -178,6 +178,9 @@ def run(config, steps: int = 10, eval_batch: int = 1024, repeats: int = 5,
     if config.model.keypoint_rescale == 0:  # "from the data": the random inputs' unit scale
         config = config.copy_and_resolve_references()
         config.model.keypoint_rescale = 1.0
+    if config.model.get("keypoint_scaling") == "auto":  # random inputs: one input scale
+        config = config.copy_and_resolve_references()
+        config.model.keypoint_scaling = "global"
     if config.inference.handedness_reference == "auto":  # random inputs fit no body
         config = config.copy_and_resolve_references()
         config.inference.handedness_reference = "mean_shape"

@@ -50,6 +50,19 @@ def test_benchmark_cli_finds_the_bundled_configs_and_reports_errors_in_one_line(
                                   "configs are ") and proc.stderr.count("\n") == 1, proc.stderr
 
 
+def test_the_own_data_config_benchmarks_with_its_data_driven_settings_fixed():
+    """configs/own_json.py leaves the input scale, the per-view scaling and the handedness
+    reference to the training data, which random inputs do not have: the benchmark fixes
+    them (one unit scale, one input scale, the mean shape) instead of refusing."""
+    from configs import own_json
+
+    c = own_json.get_config("smoke")
+    c.model.n_keypoints = 8
+    assert c.model.keypoint_scaling == "auto" and c.inference.handedness_reference == "auto"
+    res = benchmark.run(c, steps=1, repeats=1, eval_batch=8)
+    assert res["eval_samples_per_s"] > 0 and res["batch_size"] == c.train.batch_size
+
+
 def test_chunk_steps_below_one_is_a_clear_error():
     import pytest
 
