@@ -154,7 +154,8 @@ def one_handedness(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     them) keeps a view from being lifted as the mirror image of the others, which fits its
     2D points as well; at inference the handedness reference is taken from the data
     (``resolve.resolve_handedness``: a built-in body whose joint order the views fit, else
-    the model's own). ``:paper`` turns the term off (evidence:
+    the training views' mean, each output weighed by its small corners where they keep
+    their chirality, else the model's own). ``:paper`` turns the term off (evidence:
     experiments/dev_suite/handedness.md)."""
     c.loss.w_handedness, c.loss.handedness_margin = 10.0, 0.02
     c.inference.handedness_reference = "auto"
