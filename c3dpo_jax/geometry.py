@@ -8,6 +8,7 @@ Paper: Sec. 4.4 (zero-centring and scaling of the input keypoints; the camera
 translation estimated from the means of the visible points).
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -19,6 +20,11 @@ def masked_mean(x: Float[Array, " N *C"], mask: Float[Array, " N"]) -> Float[Arr
     where ``mask`` is 0 are selected away, not multiplied by 0 (inf * 0 is NaN)."""
     m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
     return jnp.sum(jnp.where(m > 0, x * m, 0.0), axis=0) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def point_means(x: Float[Array, "M N *C"], mask: Float[Array, "M N"]) -> Float[Array, " N *C"]:
+    """Each point's ``masked_mean`` over the examples whose ``mask`` has it."""
+    return jax.vmap(masked_mean, in_axes=(1, 1))(x, mask)
 
 
 def normalise_keypoints(

@@ -19,7 +19,7 @@ from functools import partial
 import jax
 import numpy as np
 
-from c3dpo_jax import baselines, evaluation, lift, model
+from c3dpo_jax import baselines, evaluation, geometry, lift, model
 from c3dpo_jax.data import bodies
 from c3dpo_jax.data.dataset import KeypointData
 from c3dpo_jax.lift import InferenceConfig
@@ -89,18 +89,15 @@ def training_views_mean(variables, data: KeypointData, model_cfg: model.ModelCon
     as the model lifts them with ``options``, each with its own handedness, over the views
     whose class has the point; and the share of those views whose canonical shape reverses
     the rows' small corners (``lift.local_handedness_evidence`` < 0)."""
-    own = dataclasses.replace(options, one_handedness=False, handedness_reference="mean_shape",
-                              handedness_body=())
     idx = np.sort(np.random.default_rng(0).permutation(len(data))[:max_views])
     views = data.subset(idx)
-    pred = predict_split(variables, views, model_cfg, own, batch_size)
-    mask = views.model_inputs()["class_mask"]
-    rows = (pred["shape_canonical"] * mask[..., None]).sum(0) / np.maximum(
-        mask.sum(0), 1.0)[:, None]
-    evidence = jax.vmap(lift.local_handedness_evidence, (0, None, 0))(
-        *(jax.numpy.asarray(a, jax.numpy.float32) for a in (pred["shape_canonical"], rows,
-                                                             mask)))
-    return (tuple(tuple(float(v) for v in row) for row in rows),
+    pred = predict_split(variables, views, model_cfg, lift.without_handedness(options),
+                         batch_size)
+    shapes = jax.numpy.asarray(pred["shape_canonical"], jax.numpy.float32)
+    mask = jax.numpy.asarray(views.model_inputs()["class_mask"], jax.numpy.float32)
+    rows = geometry.point_means(shapes, mask)
+    evidence = jax.vmap(lift.local_handedness_evidence, (0, None, 0))(shapes, rows, mask)
+    return (tuple(tuple(float(v) for v in row) for row in np.asarray(rows)),
             float(np.mean(np.asarray(evidence) < 0)))
 
 
@@ -120,10 +117,7 @@ def with_views_mean(options: InferenceConfig, variables, data: KeypointData,
     flat = bodies.body_problem(rows, model_cfg.n_keypoints)  # no handedness to give
     if flat or (options.handedness_evidence == "tetrahedra"
                 and reversed_share > TETRAHEDRA_TRUST):
-        return dataclasses.replace(options, handedness_reference="mean_shape",
-                                   one_handedness=False, handedness_evidence="procrustes",
-                                   handedness_from_output=False,
-                                   handedness_body=()), reversed_share
+        return lift.without_handedness(options), reversed_share
     return dataclasses.replace(options, handedness_body=rows), reversed_share
 
 

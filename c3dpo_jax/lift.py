@@ -44,6 +44,9 @@ HANDEDNESS_REFERENCES = {"mean_shape": None, **bodies.HUMAN_BODIES}
 # The references whose points are rows of ``handedness_body``: a user's 3D example, and the
 # training views' mean canonical shape (``inference.training_views_mean``).
 ROWS_REFERENCES = ("body", "views_mean")
+# The inference options that say which handedness a view is given.
+HANDEDNESS_FIELDS = ("one_handedness", "handedness_reference", "handedness_body",
+                     "handedness_evidence", "handedness_from_output")
 # The ways of weighing a shape's handedness against a reference (``evidence``).
 HANDEDNESS_EVIDENCE = ("procrustes", "tetrahedra")
 # Levenberg-Marquardt's damping: its start, and its factors after a step that lowers the
@@ -341,6 +344,12 @@ def options_body(options: InferenceConfig) -> np.ndarray | None:
                          "handedness_reference='mean_shape' or a body")
     body = reference_body(options.handedness_reference, options.handedness_body)
     return None if body is None else np.asarray(body, np.float32)
+
+
+def without_handedness(options: InferenceConfig) -> InferenceConfig:
+    """``options`` giving the views the model's own handedness: the handedness settings'
+    defaults (the mean shape's reference, no ``one_handedness``, no rows)."""
+    return dataclasses.replace(options, **{k: _DEFAULTS[k] for k in HANDEDNESS_FIELDS})
 
 
 def static_options(options: InferenceConfig) -> InferenceConfig:

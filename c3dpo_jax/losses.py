@@ -99,8 +99,7 @@ def views_mean(x_canon: Float[Array, "B N 3"], class_mask: Float[Array, "B N"]
     """Each point's mean canonical position over the examples whose class has it (held
     fixed): the batch's typical shape, which the basis' mean shape (coefficients 0) need
     not be."""
-    total = jnp.sum(x_canon * class_mask[..., None], 0)
-    return jax.lax.stop_gradient(total / jnp.maximum(jnp.sum(class_mask, 0), 1.0)[:, None])
+    return jax.lax.stop_gradient(geometry.point_means(x_canon, class_mask))
 
 
 def supervised_problem(weight: float, projection_type: str) -> str:

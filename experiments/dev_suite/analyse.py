@@ -807,8 +807,8 @@ DECIDE_COLUMNS = ["the paper's mpjpe (per-view flip)", "mpjpe_global, the model'
 def decide(run: str) -> list[float]:
     """``mpjpe_global`` of the test views after each is given the handedness its evidence
     (``lift.evidence``: "procrustes" or "tetrahedra") favours against a prototype (the
-    basis' mean shape, or the mean canonical shape of up to ``OBJECTIVE_VIEWS`` training
-    views as the model lifts them), read from its canonical shape or from its output (the
+    basis' mean shape, or the training views' mean canonical shape,
+    ``inference.training_views_mean``), read from its canonical shape or from its output (the
     input's x, y with the model's depth, what a user gets); first the paper's error and the
     model's own views' ``mpjpe_global``; last the share of those training views whose own
     canonical shape reverses their mean's small corners (``inference.with_views_mean``'s
@@ -820,12 +820,13 @@ def decide(run: str) -> list[float]:
     test, model = _test_split_and_model(run)
     own = {"one_handedness": False, "handedness_reference": "mean_shape"}
     rec = c3dpo_jax.reconstruct(model, test.kp, test.vis, **own)
-    views = _training_split_and_views(run)[1]
-    trained = c3dpo_jax.reconstruct(model, views.kp, views.vis, **own)
+    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{_dataset(run)}_train.json"))
+    rows, reversed_share = inference_lib.training_views_mean(model.variables, train,
+                                                             model.config, model.inference)
     net = model_lib.make_network(model.config)
     ones = jnp.ones(model.config.n_keypoints)
     prototypes = (model_lib.mean_shape(net, model.variables["params"], ones),
-                  jnp.asarray(np.mean(trained.shape_canonical, 0)))
+                  jnp.asarray(rows, jnp.float32))
     per = _per_view(rec.shape_3d, test)
     orig, flip = per["mpjpe_orig"], per["mpjpe_flip"]
     out = [float(np.mean(np.minimum(orig, flip))), float(min(orig.mean(), flip.mean()))]
@@ -837,9 +838,6 @@ def decide(run: str) -> list[float]:
                 mirrored = np.asarray(evidence) < 0
                 a, b = np.where(mirrored, flip, orig), np.where(mirrored, orig, flip)
                 out.append(float(min(a.mean(), b.mean())))
-    train = json_dataset.load(os.path.join(FLAGS.out, "data", f"{_dataset(run)}_train.json"))
-    reversed_share = inference_lib.training_views_mean(model.variables, train, model.config,
-                                                       model.inference)[1]
     rigid = evaluation.evaluate(_rigid_fit(train, test), test)
     return out + [reversed_share, rigid["mpjpe"], rigid["mpjpe_global"]]
 
