@@ -16,6 +16,7 @@ A reference body reaches it as an array (``body``, resolved on the host by
 import dataclasses
 import math
 from collections.abc import Mapping
+from functools import partial
 from typing import Any
 
 import jax
@@ -69,6 +70,12 @@ class InferenceConfig:
         experiments/dev_suite/inference.md, "Refining the regressed camera and
         coefficients at test time").
       refine_prior: the weight of that prior (>= 0).
+      refine_handedness: the weight (>= 0) of a third term of that fit, the squared amount
+        by which the canonical shape's handedness evidence against the basis' mean shape
+        (``handedness_evidence``) falls below Phi's: the 2D points do not see a shape's
+        handedness, so without it the refinement can carry a view near the boundary over
+        to the other side (0: the fit as above; evidence:
+        experiments/dev_suite/handedness.md, "The refinement's handedness").
       turns: copies of each view turned in-plane about its centre whose median depth is
         kept (an orthographic depth does not change under an in-plane turn; 1: one pass,
         as the release; orthographic models only).
@@ -117,6 +124,7 @@ class InferenceConfig:
 
     refine_iters: int = 0
     refine_prior: float = 0.3
+    refine_handedness: float = 0.0
     turns: int = 1
     turn_span: str = "augmentation"
     one_handedness: bool = False
@@ -181,10 +189,11 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
     found = [f"{name}={v[name]!r} (must be an integer >= {least})"
              for name, least in (("refine_iters", 0), ("turns", 1))
              if not _is_count(v[name], least)]
-    prior = v["refine_prior"]
-    if isinstance(prior, bool) or not isinstance(prior, int | float | np.integer | np.floating) \
-            or not (math.isfinite(prior) and prior >= 0):
-        found.append(f"refine_prior={prior!r} (must be a finite number >= 0)")
+    for name in ("refine_prior", "refine_handedness"):
+        w = v[name]
+        if isinstance(w, bool) or not isinstance(w, int | float | np.integer | np.floating) \
+                or not (math.isfinite(w) and w >= 0):
+            found.append(f"{name}={w!r} (must be a finite number >= 0)")
     if v["turn_span"] not in TURN_SPANS:
         found.append(f"turn_span={v['turn_span']!r} (must be one of "
                      + ", ".join(repr(s) for s in TURN_SPANS) + ")")
@@ -511,21 +520,31 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
     ``options.refine_iters`` Levenberg-Marquardt steps from Phi's values on the mean
     squared 2D distance of the reprojected visible points to ``kp_norm`` plus
     ``options.refine_prior`` times the mean squared distance of the canonical shape's
-    points (those of ``class_mask``) to Phi's canonical shape. Scale and translation stay
-    Phi's. A step that does not lower the cost is not taken (the damping rises instead), so
-    the cost never rises above Phi's."""
+    points (those of ``class_mask``) to Phi's canonical shape plus
+    ``options.refine_handedness`` times the square of how far the canonical shape's
+    handedness evidence against the basis' mean shape falls below Phi's. Scale and
+    translation stay Phi's. A step that does not lower the cost is not taken (the damping
+    rises instead), so the cost never rises above Phi's."""
     x_phi = model.canonical_shape(net, params, phi_out["alpha"], class_mask)
     w2d = jnp.sqrt(vis / jnp.maximum(jnp.sum(vis), 1.0))[:, None]
     w3d = jnp.sqrt(options.refine_prior * class_mask
                    / jnp.maximum(jnp.sum(class_mask), 1.0))[:, None]
+    mean = model.mean_shape(net, params, class_mask)
+    # floor: a finite derivative where a shape fits the mean shape exactly
+    handedness = partial(handedness_evidence, reference=mean, class_mask=class_mask,
+                         floor=1e-8)
+    phi_evidence = handedness(x_phi)
 
     def residuals(p):
         out = dict(phi_out, theta=p[:3], alpha=p[3:])
         x_canon = model.canonical_shape(net, params, out["alpha"], class_mask)
         x_cam, t, _ = model.camera_frame(cfg, out, x_canon)
         proj, _, _ = model.reproject(cfg, x_cam + t[None], kp_norm, vis)
-        return jnp.concatenate([((proj - kp_norm) * w2d).ravel(),
-                                ((x_canon - x_phi) * w3d).ravel()])
+        terms = [((proj - kp_norm) * w2d).ravel(), ((x_canon - x_phi) * w3d).ravel()]
+        if options.refine_handedness > 0:  # (a static option: none of its cost when 0)
+            terms.append(jnp.sqrt(options.refine_handedness) * jax.nn.relu(
+                phi_evidence - handedness(x_canon))[None])
+        return jnp.concatenate(terms)
 
     def step(carry, _):
         p, damping = carry
