@@ -70,12 +70,15 @@ class InferenceConfig:
         experiments/dev_suite/inference.md, "Refining the regressed camera and
         coefficients at test time").
       refine_prior: the weight of that prior (>= 0).
-      refine_handedness: the weight (>= 0) of a third term of that fit, the squared amount
-        by which the canonical shape's handedness evidence against the basis' mean shape
-        (``handedness_evidence``) falls below Phi's: the 2D points do not see a shape's
-        handedness, so without it the refinement can carry a view near the boundary over
-        to the other side (0: the fit as above; evidence:
-        experiments/dev_suite/handedness.md, "The refinement's handedness").
+      refine_handedness: the weight (>= 0) of a third term of that fit, the square of how
+        far the canonical shape's handedness evidence against the basis' mean shape
+        (``handedness_evidence``) falls below Phi's or ``refine_handedness_margin``,
+        whichever is lower: the 2D points do not see a shape's handedness, so without it
+        the refinement can carry a view near the boundary over to the other side (0: the
+        fit as above; evidence: experiments/dev_suite/handedness.md, "The refinement's
+        handedness").
+      refine_handedness_margin: the evidence (in (0, 1]) below which that term charges a
+        fall (1: any fall below Phi's).
       turns: copies of each view turned in-plane about its centre whose median depth is
         kept (an orthographic depth does not change under an in-plane turn; 1: one pass,
         as the release; orthographic models only).
@@ -125,6 +128,7 @@ class InferenceConfig:
     refine_iters: int = 0
     refine_prior: float = 0.3
     refine_handedness: float = 0.0
+    refine_handedness_margin: float = 1.0
     turns: int = 1
     turn_span: str = "augmentation"
     one_handedness: bool = False
@@ -194,6 +198,10 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
         if isinstance(w, bool) or not isinstance(w, int | float | np.integer | np.floating) \
                 or not (math.isfinite(w) and w >= 0):
             found.append(f"{name}={w!r} (must be a finite number >= 0)")
+    margin = v["refine_handedness_margin"]
+    if isinstance(margin, bool) or not isinstance(
+            margin, int | float | np.integer | np.floating) or not 0 < margin <= 1:
+        found.append(f"refine_handedness_margin={margin!r} (must be a number in (0, 1])")
     if v["turn_span"] not in TURN_SPANS:
         found.append(f"turn_span={v['turn_span']!r} (must be one of "
                      + ", ".join(repr(s) for s in TURN_SPANS) + ")")
@@ -522,7 +530,8 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
     ``options.refine_prior`` times the mean squared distance of the canonical shape's
     points (those of ``class_mask``) to Phi's canonical shape plus
     ``options.refine_handedness`` times the square of how far the canonical shape's
-    handedness evidence against the basis' mean shape falls below Phi's. Scale and
+    handedness evidence against the basis' mean shape falls below Phi's or
+    ``options.refine_handedness_margin``, whichever is lower. Scale and
     translation stay Phi's. A step that does not lower the cost is not taken (the damping
     rises instead), so the cost never rises above Phi's."""
     x_phi = model.canonical_shape(net, params, phi_out["alpha"], class_mask)
@@ -533,7 +542,7 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
     # floor: a finite derivative where a shape fits the mean shape exactly
     handedness = partial(handedness_evidence, reference=mean, class_mask=class_mask,
                          floor=1e-8)
-    phi_evidence = handedness(x_phi)
+    floor = jnp.minimum(handedness(x_phi), options.refine_handedness_margin)
 
     def residuals(p):
         out = dict(phi_out, theta=p[:3], alpha=p[3:])
@@ -543,7 +552,7 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
         terms = [((proj - kp_norm) * w2d).ravel(), ((x_canon - x_phi) * w3d).ravel()]
         if options.refine_handedness > 0:  # (a static option: none of its cost when 0)
             terms.append(jnp.sqrt(options.refine_handedness) * jax.nn.relu(
-                phi_evidence - handedness(x_canon))[None])
+                floor - handedness(x_canon))[None])
         return jnp.concatenate(terms)
 
     def step(carry, _):

@@ -66,6 +66,10 @@ _INFERENCE_HELP = {
                     "coefficients (0: Phi's own output, the release's single pass).",
     "refine_prior": "Weight of the refinement's prior (the canonical shape's squared distance "
                     "to Phi's).",
+    "refine_handedness": "Weight of the refinement's term that keeps each view's handedness "
+                         "evidence against the model's mean shape at least Phi's or "
+                         "--refine_handedness_margin, whichever is lower (0: none).",
+    "refine_handedness_margin": "The evidence below which that term charges a fall (1: any).",
     "turns": "Copies of each view turned in-plane whose median depth is kept (1: one pass).",
     "turn_span": "Where the copies are turned: augmentation, circle or circle_and_range.",
     "one_handedness": "Give every view the handedness of --handedness_reference (a view and "
