@@ -78,7 +78,8 @@ class InferenceConfig:
         fit as above; evidence: experiments/dev_suite/handedness.md, "The refinement's
         handedness").
       refine_handedness_margin: the evidence (in (0, 1]) below which that term charges a
-        fall (1: any fall below Phi's).
+        fall (1: any fall below Phi's, which takes from the refinement where it reshapes
+        views most).
       turns: copies of each view turned in-plane about its centre whose median depth is
         kept (an orthographic depth does not change under an in-plane turn; 1: one pass,
         as the release; orthographic models only).
@@ -128,7 +129,7 @@ class InferenceConfig:
     refine_iters: int = 0
     refine_prior: float = 0.3
     refine_handedness: float = 0.0
-    refine_handedness_margin: float = 1.0
+    refine_handedness_margin: float = 0.05
     turns: int = 1
     turn_span: str = "augmentation"
     one_handedness: bool = False
