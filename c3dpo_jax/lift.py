@@ -539,11 +539,12 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
     w2d = jnp.sqrt(vis / jnp.maximum(jnp.sum(vis), 1.0))[:, None]
     w3d = jnp.sqrt(options.refine_prior * class_mask
                    / jnp.maximum(jnp.sum(class_mask), 1.0))[:, None]
-    mean = model.mean_shape(net, params, class_mask)
-    # floor: a finite derivative where a shape fits the mean shape exactly
-    handedness = partial(handedness_evidence, reference=mean, class_mask=class_mask,
-                         floor=1e-8)
-    floor = jnp.minimum(handedness(x_phi), options.refine_handedness_margin)
+    keep_handedness = options.refine_handedness > 0  # static: none of the term's cost at 0
+    if keep_handedness:
+        # floor=1e-8: a finite derivative where a shape fits the mean shape exactly
+        evidence = partial(handedness_evidence, reference=model.mean_shape(
+            net, params, class_mask), class_mask=class_mask, floor=1e-8)
+        least = jnp.minimum(evidence(x_phi), options.refine_handedness_margin)  # free above
 
     def residuals(p):
         out = dict(phi_out, theta=p[:3], alpha=p[3:])
@@ -551,9 +552,9 @@ def refine_camera_and_shape(cfg: ModelConfig, options: InferenceConfig, net, par
         x_cam, t, _ = model.camera_frame(cfg, out, x_canon)
         proj, _, _ = model.reproject(cfg, x_cam + t[None], kp_norm, vis)
         terms = [((proj - kp_norm) * w2d).ravel(), ((x_canon - x_phi) * w3d).ravel()]
-        if options.refine_handedness > 0:  # (a static option: none of its cost when 0)
+        if keep_handedness:
             terms.append(jnp.sqrt(options.refine_handedness) * jax.nn.relu(
-                floor - handedness(x_canon))[None])
+                least - evidence(x_canon))[None])
         return jnp.concatenate(terms)
 
     def step(carry, _):
