@@ -167,12 +167,8 @@ def refined_inference(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
     start 20 Levenberg-Marquardt steps on the view's 2D reprojection error plus 0.3 times the
     mean squared distance of the canonical shape's points to Phi's
     (``inference.refine_iters``, ``inference.refine_prior``; evidence:
-    experiments/dev_suite/inference.md), plus 100 times the square of how far the canonical
-    shape's handedness evidence falls below Phi's or 0.05, whichever is lower, so that the
-    fit does not carry a view over to the other handedness (``inference.refine_handedness``,
-    ``inference.refine_handedness_margin``; evidence: experiments/dev_suite/handedness.md)."""
+    experiments/dev_suite/inference.md)."""
     c.inference.refine_iters, c.inference.refine_prior = 20, 0.3
-    c.inference.refine_handedness, c.inference.refine_handedness_margin = 100.0, 0.05
     return c
 
 

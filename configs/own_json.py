@@ -12,7 +12,9 @@ for dense or very deformable ones) and ``--config.data.protocol=none`` for 2D-on
 The CPU recipe (``default.cpu_recipe``, with its handedness term) plus, not in the paper:
 a Gaussian prior on the deformations for the first 2,000 steps, the learning rate warmed
 up over the first 500, and each view's camera and coefficients refined at inference
-(``default.refined_inference``). At inference the handedness comes from a built-in human
+(``default.refined_inference``) with a term that keeps that fit from carrying a view near
+the boundary over to the other handedness (``inference.refine_handedness``; this config
+only). At inference the handedness comes from a built-in human
 body when the points are people in Human3.6M's or COCO's 17-joint order, else from the
 model (``inference.handedness_reference``; give one 3D example of your points as a .npy,
 .json, .txt or .csv file to fix the mirror bit, docs/inference.md); subjects seen at
@@ -32,6 +34,9 @@ def get_config(arg=None):
     c.loss.deformation_ramp = (1000, 2000)
     c.optim.warmup_steps = 500
     default.refined_inference(c)
+    # The refinement keeps each view's handedness evidence at least the lower of Phi's and
+    # 0.05 (experiments/dev_suite/handedness.md, "The refinement's handedness").
+    c.inference.refine_handedness, c.inference.refine_handedness_margin = 100.0, 0.05
     # People in Human3.6M's or COCO's 17-joint order get a human body's handedness at
     # inference (resolve.resolve_handedness); other points the mean shape's, as before.
     c.inference.handedness_reference = "auto"

@@ -46,7 +46,6 @@ def test_a_saved_workdir_scores_the_recorded_scores(tmp_path):
     config.unlock()
     config.inference.one_handedness = True
     config.inference.turns = 3
-    config.inference.refine_handedness = 0.0  # the run predates the term: its own options
     got = evaluate_workdir.evaluate_checkpoint(config, str(workdir), save=False)
     want = json.loads((DATA / "saved_workdir_scores.json").read_text())
     assert "inference" not in got["final"]  # the run's own options
