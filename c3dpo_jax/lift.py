@@ -181,6 +181,12 @@ def _typed(values: Mapping[str, Any]) -> dict[str, Any]:
     return {k: _rows(v) if types[k] is tuple else types[k](v) for k, v in values.items()}
 
 
+def _is_number(value) -> bool:
+    """A real number (not a bool), Python's or numpy's."""
+    return not isinstance(value, bool | np.bool_) and isinstance(
+        value, int | float | np.integer | np.floating)
+
+
 def _is_count(value, least: int) -> bool:
     return (not isinstance(value, bool | np.bool_) and isinstance(value, int | np.integer)
             and bool(value >= least))
@@ -194,14 +200,11 @@ def field_problems(values: Mapping[str, Any]) -> list[str]:
     found = [f"{name}={v[name]!r} (must be an integer >= {least})"
              for name, least in (("refine_iters", 0), ("turns", 1))
              if not _is_count(v[name], least)]
-    for name in ("refine_prior", "refine_handedness"):
-        w = v[name]
-        if isinstance(w, bool) or not isinstance(w, int | float | np.integer | np.floating) \
-                or not (math.isfinite(w) and w >= 0):
-            found.append(f"{name}={w!r} (must be a finite number >= 0)")
+    found += [f"{name}={v[name]!r} (must be a finite number >= 0)"
+              for name in ("refine_prior", "refine_handedness")
+              if not (_is_number(v[name]) and math.isfinite(v[name]) and v[name] >= 0)]
     margin = v["refine_handedness_margin"]
-    if isinstance(margin, bool) or not isinstance(
-            margin, int | float | np.integer | np.floating) or not 0 < margin <= 1:
+    if not (_is_number(margin) and 0 < margin <= 1):
         found.append(f"refine_handedness_margin={margin!r} (must be a number in (0, 1])")
     if v["turn_span"] not in TURN_SPANS:
         found.append(f"turn_span={v['turn_span']!r} (must be one of "

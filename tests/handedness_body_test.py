@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from numpy_reference import procrustes_evidence
 from scipy.spatial.transform import Rotation
 
 from c3dpo_jax import C3DPOParams, lift, model, reconstruct, resolve, train
@@ -193,15 +194,9 @@ def test_reconstruct_takes_a_body_as_an_array_or_a_file(tmp_path):
                                                  jnp.ones(K), jnp.asarray(body, jnp.float32)))
     assert _orthogonal_residual(mean, body, True) < _orthogonal_residual(mean, body, False)
 
-    def evidence(x, ref):
-        x, ref = (y - y.mean(0) for y in (x, ref))
-        x, ref = x / np.linalg.norm(x), ref / np.linalg.norm(ref)
-        proper, mirror = (_orthogonal_residual(x, ref, p) for p in (True, False))
-        return (mirror - proper) / (mirror + proper)
-
     flips = []
     for x_own, x_on in zip(off.shape_canonical, on.shape_canonical, strict=True):
-        mirrored = evidence(x_own, body) + evidence(x_own, mean) < 0
+        mirrored = procrustes_evidence(x_own, body) + procrustes_evidence(x_own, mean) < 0
         flips.append(mirrored)
         np.testing.assert_allclose(x_on, x_own * ([1.0, 1.0, -1.0] if mirrored else 1.0),
                                    atol=1e-5)

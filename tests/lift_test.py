@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from numpy_reference import procrustes_evidence
 from tiny_model import CFG, ONE_PASS, eval_pass, input_dependent_variables, perfect_variables, views
 
 from c3dpo_jax import evaluation, inference, lift, model
@@ -187,17 +188,6 @@ def test_refinement_reaches_the_minimum_scipy_finds_from_phi_s_output():
         np.testing.assert_allclose(out["shape_camera"][i, :, 2], depth, atol=1e-4)
 
 
-def _handedness_numpy(x, ref):
-    """Independent of ``lift.handedness_evidence``: (mirror - proper) / (mirror + proper) of
-    the residuals of ``x`` aligned onto ``ref`` (both centred, unit size) by the best proper
-    rotation and by the best rotation of its mirror image (scipy)."""
-    a, b = (y - y.mean(0) for y in (np.asarray(x, np.float64), np.asarray(ref, np.float64)))
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    proper = _rotation_residual_numpy(a, b)
-    mirror = _rotation_residual_numpy(a * np.array([1.0, 1.0, -1.0]), b)
-    return (mirror - proper) / (mirror + proper)
-
-
 @pytest.mark.parametrize("margin", [1.0, 0.5])
 def test_the_refinement_s_handedness_term_keeps_phi_s_evidence_and_reaches_scipy_s_minimum(
         margin):
@@ -213,7 +203,7 @@ def test_the_refinement_s_handedness_term_keeps_phi_s_evidence_and_reaches_scipy
     lost_free, lost_kept = [], []  # per view: the fall below the lower of Phi's and the margin
     for i in range(len(kp)):
         def evidence(alpha):
-            return _handedness_numpy(_canonical_numpy(variables, alpha), mean)
+            return procrustes_evidence(_canonical_numpy(variables, alpha), mean)
 
         floor = min(evidence(phi["alpha"][i]), margin)
 

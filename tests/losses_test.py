@@ -4,6 +4,7 @@ objective lives."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from numpy_reference import procrustes_evidence
 
 from c3dpo_jax import losses
 
@@ -117,26 +118,6 @@ def test_rotations_of_a_training_example_follow_the_model_config():
     assert off.canonicalisation.shape == (0, 3, 3)
 
 
-def _procrustes_residuals(x, ref):
-    """Numpy: the residuals of the best proper rotation and of the best reflection of the
-    centred, unit-norm shape ``x`` onto ``ref`` (scipy's orthogonal Procrustes, det fixed)."""
-    from scipy.linalg import orthogonal_procrustes
-
-    a, b = (y - y.mean(0) for y in (x, ref))
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    out = {}
-    for sign in (1.0, -1.0):
-        # The best map of the given determinant: the best rotation of a with its third axis
-        # negated (sign -1), composed with that reflection.
-        flip = np.diag([1.0, 1.0, sign])
-        rot, _ = orthogonal_procrustes(a @ flip, b)
-        if np.linalg.det(rot) < 0:  # the best orthogonal map is improper: fix its det
-            u, _, vt = np.linalg.svd((a @ flip).T @ b)
-            rot = u @ np.diag([1.0, 1.0, -1.0]) @ vt
-        out[sign] = np.linalg.norm(a @ flip @ rot - b)
-    return out[1.0], out[-1.0]
-
-
 def test_handedness_term_is_the_hinge_on_the_procrustes_evidence():
     from scipy.spatial.transform import Rotation
 
@@ -145,11 +126,7 @@ def test_handedness_term_is_the_hinge_on_the_procrustes_evidence():
     rots = Rotation.random(6, random_state=1).as_matrix()
     shapes = np.einsum("mij,nj->mni", rots, mean) + 0.15 * rng.normal(size=(6, 9, 3))
     shapes[3:] *= np.array([1.0, 1.0, -1.0])  # three mirror images
-    evidence = []
-    for x in shapes:
-        proper, mirror = _procrustes_residuals(x, mean)
-        evidence.append((mirror - proper) / (mirror + proper))
-    evidence = np.array(evidence)
+    evidence = np.array([procrustes_evidence(x, mean) for x in shapes])
     assert np.all(evidence[:3] > 0.2) and np.all(evidence[3:] < -0.2)
     ones = np.ones((6, 9))
     for margin in (0.0, 0.5):
